@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# One entry point for newcomers and CI: sets up .venv (idempotent) and runs a job.
+#   scripts/dev.sh demo [ARGS...]   set up, then run the main demo (glassmap demo)
+#   scripts/dev.sh test [ARGS...]   set up, then run the default test suite (pytest)
+#   scripts/dev.sh slow [ARGS...]   set up, then run the slow / heavy tests (pytest -m slow)
+#   scripts/dev.sh setup            set up only
+#   scripts/dev.sh glassmap ARGS    set up, then run any glassmap subcommand
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$here"
+venv="${GLASSMAP_VENV:-$here/.venv}"
+
+pick_python() {
+  for py in "${PYTHON:-}" python3.11 python3 python; do
+    [ -n "$py" ] || continue
+    if command -v "$py" >/dev/null 2>&1 && "$py" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+      echo "$py"; return 0
+    fi
+  done
+  echo "error: Python 3.11 is required (set PYTHON=/path/to/python3.11)" >&2
+  return 1
+}
+
+setup() {
+  local stamp="$venv/.glassmap-setup" want
+  want="$(cat pyproject.toml scripts/dev.sh | sha256sum | cut -c1-16)"
+  if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then return 0; fi
+  local py; py="$(pick_python)"
+  echo "== setting up $venv (one time; torch is large)" >&2
+  [ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
+  "$venv/bin/python" -m pip install --quiet --upgrade pip
+  # torch first and pinned: a range admitting newer releases would pull the CUDA builds.
+  "$venv/bin/python" -m pip install --quiet "torch==2.13.0"
+  "$venv/bin/python" -m pip install --quiet -e ".[test]"
+  echo "$want" > "$stamp"
+}
+
+cmd="${1:-help}"; shift || true
+case "$cmd" in
+  setup) setup ;;
+  demo) setup; exec "$venv/bin/glassmap" demo "$@" ;;
+  test) setup; exec "$venv/bin/python" -m pytest "$@" ;;
+  slow) setup; exec "$venv/bin/python" -m pytest -m slow "$@" ;;
+  glassmap) setup; exec "$venv/bin/glassmap" "$@" ;;
+  *) sed -n '2,8p' "$0"; exit 2 ;;
+esac
