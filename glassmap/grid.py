@@ -1,0 +1,209 @@
+"""Map grids in the map frame: a growable stack of layers, and the log-odds occupancy grid.
+
+Cell (col, row) = (ix, iy) covers map-frame x in [origin_x + ix*res, origin_x + (ix+1)*res) and likewise
+for y; arrays are indexed ``layer[iy, ix]`` (row = y). Resolution in metres per cell (default 0.05 m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class MapGrid:
+    """Grid geometry plus named layers that grow together as the robot explores.
+
+    Layers are 2-D arrays of the grid's shape, each with its own fill value for new cells. Growth happens
+    in blocks of ``grow_step_m`` so it is rare; after a growth, ``origin`` moves and every layer is padded.
+    """
+
+    def __init__(self, resolution: float = 0.05, origin: tuple[float, float] = (-10.0, -10.0),
+                 shape: tuple[int, int] = (400, 400), grow_step_m: float = 10.0) -> None:
+        if resolution <= 0:
+            raise ValueError(f"resolution must be positive, got {resolution}")
+        self.resolution = float(resolution)
+        self.origin = np.array(origin, dtype=np.float64)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.grow_step = max(1, int(round(grow_step_m / resolution)))
+        self._layers: dict[str, np.ndarray] = {}
+        self._fills: dict[str, float] = {}
+        self.generation = 0  # incremented at every growth
+
+    def add_layer(self, name: str, fill: float = 0.0, dtype=np.float32) -> np.ndarray:
+        if name in self._layers:
+            raise ValueError(f"layer {name!r} exists already")
+        self._layers[name] = np.full(self.shape, fill, dtype=dtype)
+        self._fills[name] = fill
+        return self._layers[name]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self._layers[name]
+
+    def __setitem__(self, name: str, value: np.ndarray) -> None:
+        if value.shape != self.shape:
+            raise ValueError(f"layer {name!r}: shape {value.shape} != grid shape {self.shape}")
+        self._layers[name] = value
+
+    @property
+    def layer_names(self) -> list[str]:
+        return list(self._layers)
+
+    def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
+        """Map-frame points (..., 2) in metres -> integer cells (..., 2) as (ix, iy); may lie outside."""
+        return np.floor((np.asarray(xy) - self.origin) / self.resolution).astype(np.int64)
+
+    def cell_to_world(self, cells: np.ndarray) -> np.ndarray:
+        """Cells (..., 2) as (ix, iy) -> map-frame centres (..., 2) in metres."""
+        return self.origin + (np.asarray(cells) + 0.5) * self.resolution
+
+    def in_bounds(self, cells: np.ndarray) -> np.ndarray:
+        c = np.asarray(cells)
+        return (c[..., 0] >= 0) & (c[..., 0] < self.shape[1]) & (c[..., 1] >= 0) & (c[..., 1] < self.shape[0])
+
+    def ensure_contains(self, xy_min: np.ndarray, xy_max: np.ndarray) -> bool:
+        """Grow every layer so the map-frame box [xy_min, xy_max] lies inside. Returns True if it grew."""
+        if not (np.all(np.isfinite(xy_min)) and np.all(np.isfinite(xy_max))):
+            raise ValueError("ensure_contains needs finite coordinates")
+        lo = self.world_to_cell(np.asarray(xy_min, dtype=np.float64))
+        hi = self.world_to_cell(np.asarray(xy_max, dtype=np.float64))
+        h, w = self.shape
+        pad_left = self._blocks(-lo[0])
+        pad_bottom = self._blocks(-lo[1])
+        pad_right = self._blocks(hi[0] - (w - 1))
+        pad_top = self._blocks(hi[1] - (h - 1))
+        if not (pad_left or pad_bottom or pad_right or pad_top):
+            return False
+        for name, arr in self._layers.items():
+            self._layers[name] = np.pad(arr, ((pad_bottom, pad_top), (pad_left, pad_right)),
+                                        constant_values=self._fills[name])
+        self.origin = self.origin - np.array([pad_left, pad_bottom]) * self.resolution
+        self.shape = (h + pad_bottom + pad_top, w + pad_left + pad_right)
+        self.generation += 1
+        return True
+
+    def _blocks(self, cells_missing: int) -> int:
+        return 0 if cells_missing <= 0 else int(np.ceil(cells_missing / self.grow_step)) * self.grow_step
+
+
+@dataclass(frozen=True)
+class OccupancyParams:
+    """Log-odds increments and limits of the occupancy update (dimensionless log-odds).
+
+    l_occ: added at a beam's end point cell; l_free: added to cells the beam crossed (once per scan);
+    l_min/l_max clamp; occ_threshold/free_threshold classify probabilities; max_free_range (m) caps how
+    far a beam clears space (long beams are less trustworthy, and glass lets beams through).
+    """
+
+    l_occ: float = 0.85
+    l_free: float = -0.4
+    l_min: float = -4.0
+    l_max: float = 4.0
+    occ_threshold: float = 0.65
+    free_threshold: float = 0.35
+    max_free_range: float = 20.0
+
+
+class OccupancyGrid:
+    """Log-odds occupancy grid on a :class:`MapGrid` layer ``"occupancy"`` (0 = unknown)."""
+
+    LAYER = "occupancy"
+
+    def __init__(self, grid: MapGrid | None = None, params: OccupancyParams = OccupancyParams()) -> None:
+        self.grid = grid if grid is not None else MapGrid()
+        self.params = params
+        if self.LAYER not in self.grid.layer_names:
+            self.grid.add_layer(self.LAYER, 0.0, np.float32)
+
+    @property
+    def log_odds(self) -> np.ndarray:
+        return self.grid[self.LAYER]
+
+    def probability(self) -> np.ndarray:
+        """P(occupied) per cell, (H, W) float32; 0.5 where unknown."""
+        return (1.0 / (1.0 + np.exp(-self.log_odds))).astype(np.float32)
+
+    def occupied(self) -> np.ndarray:
+        return self.probability() > self.params.occ_threshold
+
+    def free(self) -> np.ndarray:
+        return self.probability() < self.params.free_threshold
+
+    def unknown(self) -> np.ndarray:
+        p = self.probability()
+        return (p >= self.params.free_threshold) & (p <= self.params.occ_threshold)
+
+    def integrate(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
+                  range_max: float = 30.0, protect: np.ndarray | None = None) -> int:
+        """Update from one scan. laser_pose (3,) = laser (x, y, yaw) in the map frame; angles (n,) rad in
+        the laser frame; ranges (n,) m (NaN invalid, +inf no return: neither marks anything occupied;
+        +inf clears up to ``max_free_range``).
+
+        protect: optional (H, W) bool mask of cells that free-space updates must not lower (e.g. cells the
+        glass map believes are glass: beams pass through glass at oblique incidence). Returns the number of
+        beams used.
+        """
+        angles = np.asarray(angles, dtype=np.float64)
+        ranges = np.asarray(ranges, dtype=np.float64)
+        if angles.shape != ranges.shape:
+            raise ValueError(f"angles {angles.shape} and ranges {ranges.shape} differ in shape")
+        pose = np.asarray(laser_pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"laser_pose must be 3 finite numbers, got {laser_pose!r}")
+        p = self.params
+        hit = np.isfinite(ranges) & (ranges <= range_max)
+        clear = hit | (np.isposinf(ranges))
+        if not clear.any():
+            return 0
+        free_len = np.where(hit, ranges, p.max_free_range).clip(0.0, p.max_free_range)
+        c, s = np.cos(pose[2] + angles), np.sin(pose[2] + angles)
+        ends = pose[:2] + np.stack([c, s], axis=1) * np.where(hit, ranges, 0.0)[:, None]
+        reach = pose[:2] + np.stack([c, s], axis=1) * free_len[:, None]
+        pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
+        self.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
+        g = self.grid
+        w = g.shape[1]
+
+        # Free space: samples every 0.7 cell along each clearing beam, stopping one cell short of a hit.
+        # Fancy-index "+=" applies once per distinct cell, which is the once-per-scan update we want.
+        step = 0.7 * g.resolution
+        n_samples = int(np.ceil(free_len[clear].max() / step))
+        lo = self.log_odds
+        if n_samples > 0:
+            t = (np.arange(n_samples, dtype=np.float32) * step)[None, :]
+            lengths = (free_len[clear] - np.where(hit[clear], g.resolution, 0.0)).astype(np.float32)
+            valid = t < lengths[:, None]
+            fx = (pose[0] - g.origin[0]) / g.resolution
+            fy = (pose[1] - g.origin[1]) / g.resolution
+            ix = np.floor(fx + (c[clear] / g.resolution).astype(np.float32)[:, None] * t).astype(np.int32)
+            iy = np.floor(fy + (s[clear] / g.resolution).astype(np.float32)[:, None] * t).astype(np.int32)
+            flat = (iy * w + ix)[valid]
+            if protect is not None:
+                flat = flat[~protect.ravel()[flat]]
+            lo.ravel()[flat] += p.l_free
+        if hit.any():
+            hc = g.world_to_cell(ends[hit])
+            hflat = np.unique(hc[:, 1] * w + hc[:, 0])
+            lo.ravel()[hflat] += p.l_occ
+        np.clip(lo, p.l_min, p.l_max, out=lo)
+        return int(clear.sum())
+
+    def save_pgm_yaml(self, stem: str) -> tuple[str, str]:
+        """Write ``stem.pgm`` + ``stem.yaml`` in the ROS map_server format (trinary, 254 free, 0 occupied,
+        205 unknown; image row 0 = top = highest y). Returns the two paths."""
+        import os
+
+        prob = self.probability()
+        img = np.full(prob.shape, 205, dtype=np.uint8)
+        img[prob > self.params.occ_threshold] = 0
+        img[prob < self.params.free_threshold] = 254
+        img = img[::-1]
+        pgm, yaml = stem + ".pgm", stem + ".yaml"
+        with open(pgm, "wb") as f:
+            f.write(b"P5\n%d %d\n255\n" % (img.shape[1], img.shape[0]))
+            f.write(img.tobytes())
+        with open(yaml, "w") as f:
+            f.write(f"image: {os.path.basename(pgm)}\nmode: trinary\nresolution: {self.grid.resolution}\n"
+                    f"origin: [{self.grid.origin[0]:.4f}, {self.grid.origin[1]:.4f}, 0.0]\nnegate: 0\n"
+                    f"occupied_thresh: {self.params.occ_threshold}\nfree_thresh: {self.params.free_threshold}\n")
+        return pgm, yaml

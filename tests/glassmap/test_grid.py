@@ -1,0 +1,79 @@
+"""Occupancy grid: known geometry gives known cells; growth keeps layers aligned; bad input is refused."""
+
+import numpy as np
+import pytest
+
+from glassmap.grid import MapGrid, OccupancyGrid
+
+
+def test_world_cell_round_trip():
+    g = MapGrid(resolution=0.05, origin=(-1.0, -2.0), shape=(10, 10))
+    cells = g.world_to_cell(np.array([[-1.0, -2.0], [-0.951, -1.951], [-0.949, -2.0]]))
+    assert cells.tolist() == [[0, 0], [0, 0], [1, 0]]
+    assert np.allclose(g.cell_to_world(np.array([1, 0])), [-0.925, -1.975])
+
+
+def test_growth_pads_all_layers_and_keeps_world_positions():
+    g = MapGrid(resolution=0.1, origin=(0.0, 0.0), shape=(10, 10), grow_step_m=1.0)
+    g.add_layer("a", fill=0.0)
+    g.add_layer("b", fill=0.5)
+    g["a"][g.world_to_cell(np.array([0.55, 0.25]))[::-1].tolist()[0], 5] = 7.0
+    assert g.ensure_contains(np.array([-0.5, -0.05]), np.array([0.5, 0.5]))
+    assert g.shape == (20, 20) and g["b"].shape == (20, 20)
+    assert np.allclose(g.origin, [-1.0, -1.0])
+    ix, iy = g.world_to_cell(np.array([0.55, 0.25]))
+    assert g["a"][iy, ix] == 7.0 and g["b"][0, 0] == 0.5
+    assert not g.ensure_contains(np.array([0.0, 0.0]), np.array([0.5, 0.5]))
+
+
+def test_single_beam_marks_free_then_occupied():
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 40)))
+    occ.integrate(np.array([0.0, 0.0, 0.0]), np.array([0.0]), np.array([2.0]))
+    lo = occ.log_odds
+    row = occ.grid.world_to_cell(np.array([0.0, 0.0]))[1]
+    end_ix = occ.grid.world_to_cell(np.array([2.0, 0.0]))[0]
+    assert lo[row, end_ix] == pytest.approx(0.85)
+    start_ix = occ.grid.world_to_cell(np.array([0.0, 0.0]))[0]
+    assert np.allclose(lo[row, start_ix:end_ix - 1], -0.4)
+    assert (lo[row + 1] == 0).all()  # nothing off the beam
+    assert occ.occupied().sum() == 1
+
+
+def test_no_return_clears_but_marks_nothing_and_nan_is_ignored():
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-5.0, -5.0), shape=(100, 100)))
+    occ.integrate(np.zeros(3), np.array([0.0, 1.0]), np.array([np.inf, np.nan]))
+    assert (occ.log_odds > 0).sum() == 0 and (occ.log_odds < 0).sum() > 0
+
+
+def test_protect_mask_keeps_cells_from_being_cleared():
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 40)))
+    occ.grid.ensure_contains(np.array([-2.0, -2.0]), np.array([4.0, 2.0]))
+    protect = np.zeros(occ.grid.shape, bool)
+    ix, iy = occ.grid.world_to_cell(np.array([1.0, 0.0]))
+    protect[iy, ix] = True
+    occ.integrate(np.zeros(3), np.array([0.0]), np.array([2.0]), protect=protect)
+    assert occ.log_odds[iy, ix] == 0 and occ.log_odds[iy, ix - 1] < 0
+
+
+def test_bad_inputs():
+    occ = OccupancyGrid()
+    with pytest.raises(ValueError, match="shape"):
+        occ.integrate(np.zeros(3), np.zeros(3), np.ones(4))
+    with pytest.raises(ValueError, match="laser_pose"):
+        occ.integrate(np.array([np.nan, 0, 0]), np.zeros(1), np.ones(1))
+    assert occ.integrate(np.zeros(3), np.zeros(0), np.zeros(0)) == 0
+
+
+def test_pgm_yaml_export(tmp_path):
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 40)))
+    for _ in range(3):  # one observation (p = 0.40) is not yet "free" (threshold 0.35)
+        occ.integrate(np.zeros(3), np.array([0.0]), np.array([2.0]))
+    pgm, yaml = occ.save_pgm_yaml(str(tmp_path / "map"))
+    h, w = occ.grid.shape
+    header = b"P5\n%d %d\n255\n" % (w, h)
+    data = open(pgm, "rb").read()
+    assert data.startswith(header) and len(data) == len(header) + h * w
+    img = np.frombuffer(data[len(header):], np.uint8).reshape(h, w)
+    assert (img == 0).sum() == 1 and (img == 254).sum() >= 10
+    ox, oy = occ.grid.origin
+    assert "resolution: 0.1" in open(yaml).read() and f"origin: [{ox:.4f}, {oy:.4f}, 0.0]" in open(yaml).read()
