@@ -1,0 +1,86 @@
+"""Sensor clock unwrapping and the sensor -> host time mapping (offset, drift, outliers, jumps)."""
+
+import numpy as np
+import pytest
+
+from drivers.hokuyo.clock import ClockMapper, RoundTrip, TimestampUnwrapper
+
+WRAP = 1 << 24  # ms: 16777.216 s
+
+
+def test_unwrap_across_the_24_bit_wrap_and_small_steps_back():
+    u = TimestampUnwrapper()
+    assert u.unwrap(WRAP - 50) == WRAP - 50
+    assert u.unwrap(WRAP - 25) == WRAP - 25
+    assert u.unwrap(0) == WRAP  # wrapped
+    assert u.unwrap(25) == WRAP + 25
+    assert u.unwrap(10) == WRAP + 10  # a small step back stays a step back
+    assert u.unwrap(WRAP // 2 + 5) == WRAP + WRAP // 2 + 5  # forward by less than half the range
+    u.reset()
+    assert u.unwrap(7) == 7
+
+
+def stream(mapper, n, *, offset=1000.0, slope=1.0, latency=0.02, period=0.025, s0=5.0, jitter_seed=0,
+           late=(), jump_at=None, jump=0.0, odd=()):
+    """Feed n scans; returns (true host times, mapped host times)."""
+    rng = np.random.default_rng(jitter_seed)
+    true, got = [], []
+    for k in range(n):
+        s = s0 + k * period
+        t = offset + slope * s
+        arrival = t + latency + rng.exponential(0.001) + (0.2 if k in late else 0.0)
+        stamp = s + (jump if jump_at is not None and k >= jump_at else 0.0) + (30.0 if k in odd else 0.0)
+        true.append(t)
+        got.append(mapper.observe(stamp, arrival))
+    return np.array(true), np.array(got)
+
+
+def test_tm1_offset_plus_streaming_gives_sub_millisecond_host_times_with_drift():
+    m = ClockMapper()
+    # TM1 samples: the one with the smallest round trip wins (its midpoint is host(s)).
+    m.add_round_trips([RoundTrip(1004.0, 1004.030, 4.010), RoundTrip(1004.9995, 1005.0005, 5.0),
+                       RoundTrip(1006.0, 1006.01, 6.003)])
+    assert m.anchor.sensor == 5.0
+    true, got = stream(m, 2000, slope=1 + 50e-6)  # 50 ppm drift
+    err = np.abs(got - true)[100:]
+    assert err.max() < 1e-3
+    assert m.slope == pytest.approx(1 + 50e-6, abs=5e-6)
+    assert m.latency == pytest.approx(0.02, abs=1e-3)
+
+
+def test_late_scans_do_not_move_the_clock():
+    m = ClockMapper()
+    m.add_round_trips([RoundTrip(1004.9995, 1005.0005, 5.0)])
+    true, got = stream(m, 600, late=set(range(200, 600, 7)))
+    assert np.abs(got - true)[100:].max() < 1e-3
+    assert m.jumps == 0
+
+
+def test_a_confirmed_clock_jump_reanchors_without_a_host_time_jump():
+    m = ClockMapper()
+    m.add_round_trips([RoundTrip(1004.9995, 1005.0005, 5.0)])
+    true, got = stream(m, 800, jump_at=400, jump=-120.0)
+    assert m.jumps == 1
+    err = np.abs(got - true)
+    assert err[100:400].max() < 1e-3
+    assert err[400:].max() < 5e-3  # the jump's own scans use arrival time - latency
+    assert np.all(np.diff(got[100:]) > 0)
+
+
+def test_a_single_odd_stamp_is_an_outlier_not_a_jump():
+    m = ClockMapper()
+    m.add_round_trips([RoundTrip(1004.9995, 1005.0005, 5.0)])
+    true, got = stream(m, 600, odd={300})
+    assert m.jumps == 0 and m.outliers == 1
+    assert np.abs(got - true)[100:].max() < 5e-3
+
+
+def test_without_tm1_the_latency_defaults_to_one_scan_time():
+    m = ClockMapper(default_latency=0.025)
+    true, got = stream(m, 400, latency=0.025)
+    assert np.abs(got - true)[50:].max() < 2e-3
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError):
+        ClockMapper(block=0)
