@@ -23,6 +23,7 @@ class PtyEndpoint:
     """
 
     def __init__(self, link_dir: str | None = None, name: str = "tty") -> None:
+        self._own_dir = link_dir is None
         self._dir = link_dir or tempfile.mkdtemp(prefix="glassmap-pty-")
         self.path = os.path.join(self._dir, name)
         self._master = self._slave = -1
@@ -72,9 +73,13 @@ class PtyEndpoint:
 
     def close(self) -> None:
         self.hangup()
-        for p in (self.path,):
-            if os.path.lexists(p):
-                os.unlink(p)
+        if os.path.lexists(self.path):
+            os.unlink(self.path)
+        if self._own_dir:
+            try:
+                os.rmdir(self._dir)
+            except OSError:
+                pass
 
 
 async def serve_tcp(handler: Handler, host: str = "127.0.0.1", port: int = 0) -> asyncio.base_events.Server:
