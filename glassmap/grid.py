@@ -6,6 +6,7 @@ for y; arrays are indexed ``layer[iy, ix]`` (row = y). Resolution in metres per 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,7 +93,9 @@ class OccupancyParams:
 
     l_occ: added at a beam's end point cell; l_free: added to cells the beam crossed (once per scan);
     l_min/l_max clamp; occ_threshold/free_threshold classify probabilities; max_free_range (m) caps how
-    far a beam clears space (long beams are less trustworthy, and glass lets beams through).
+    far a beam clears space (long beams are less trustworthy, and glass lets beams through);
+    no_return_range (m) is how far a beam with no return (+inf) clears: 0 by default, because near glass
+    "no return" usually means the pulse was reflected away, not that the space is empty.
     """
 
     l_occ: float = 0.85
@@ -102,6 +105,7 @@ class OccupancyParams:
     occ_threshold: float = 0.65
     free_threshold: float = 0.35
     max_free_range: float = 20.0
+    no_return_range: float = 0.0
 
 
 class OccupancyGrid:
@@ -134,14 +138,16 @@ class OccupancyGrid:
         return (p >= self.params.free_threshold) & (p <= self.params.occ_threshold)
 
     def integrate(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
-                  range_max: float = 30.0, protect: np.ndarray | None = None) -> int:
+                  range_max: float = 30.0,
+                  protect: np.ndarray | Callable[[], np.ndarray] | None = None) -> int:
         """Update from one scan. laser_pose (3,) = laser (x, y, yaw) in the map frame; angles (n,) rad in
         the laser frame; ranges (n,) m (NaN invalid, +inf no return: neither marks anything occupied;
-        +inf clears up to ``max_free_range``).
+        +inf clears up to ``no_return_range``).
 
         protect: optional (H, W) bool mask of cells that free-space updates must not lower (e.g. cells the
-        glass map believes are glass: beams pass through glass at oblique incidence). Returns the number of
-        beams used.
+        glass map believes are glass: beams pass through glass at oblique incidence), or a callable that
+        returns it; the callable is evaluated after the grid has grown to hold this scan. Returns the
+        number of beams used.
         """
         angles = np.asarray(angles, dtype=np.float64)
         ranges = np.asarray(ranges, dtype=np.float64)
@@ -152,10 +158,10 @@ class OccupancyGrid:
             raise ValueError(f"laser_pose must be 3 finite numbers, got {laser_pose!r}")
         p = self.params
         hit = np.isfinite(ranges) & (ranges <= range_max)
-        clear = hit | (np.isposinf(ranges))
+        clear = hit | (np.isposinf(ranges) & (p.no_return_range > 0))
         if not clear.any():
             return 0
-        free_len = np.where(hit, ranges, p.max_free_range).clip(0.0, p.max_free_range)
+        free_len = np.where(hit, ranges.clip(0.0, p.max_free_range), p.no_return_range)
         c, s = np.cos(pose[2] + angles), np.sin(pose[2] + angles)
         ends = pose[:2] + np.stack([c, s], axis=1) * np.where(hit, ranges, 0.0)[:, None]
         reach = pose[:2] + np.stack([c, s], axis=1) * free_len[:, None]
@@ -164,20 +170,28 @@ class OccupancyGrid:
         g = self.grid
         w = g.shape[1]
 
-        # Free space: samples every 0.7 cell along each clearing beam, stopping one cell short of a hit.
-        # Fancy-index "+=" applies once per distinct cell, which is the once-per-scan update we want.
+        if callable(protect):
+            protect = protect()
+        if protect is not None and protect.shape != g.shape:
+            raise ValueError(f"protect mask shape {protect.shape} != grid shape {g.shape} (pass a callable "
+                             "to have it evaluated after the grid grows)")
+
+        # Free space: samples every 0.7 cell along each clearing beam (ragged: each beam only up to its own
+        # length), stopping one cell short of a hit. Fancy-index "+=" applies once per distinct cell, which
+        # is the once-per-scan update we want.
         step = 0.7 * g.resolution
-        n_samples = int(np.ceil(free_len[clear].max() / step))
+        lengths = free_len[clear] - np.where(hit[clear], g.resolution, 0.0)
+        counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
         lo = self.log_odds
-        if n_samples > 0:
-            t = (np.arange(n_samples, dtype=np.float32) * step)[None, :]
-            lengths = (free_len[clear] - np.where(hit[clear], g.resolution, 0.0)).astype(np.float32)
-            valid = t < lengths[:, None]
-            fx = (pose[0] - g.origin[0]) / g.resolution
-            fy = (pose[1] - g.origin[1]) / g.resolution
-            ix = np.floor(fx + (c[clear] / g.resolution).astype(np.float32)[:, None] * t).astype(np.int32)
-            iy = np.floor(fy + (s[clear] / g.resolution).astype(np.float32)[:, None] * t).astype(np.int32)
-            flat = (iy * w + ix)[valid]
+        total = int(counts.sum())
+        if total > 0:
+            beam = np.repeat(np.arange(counts.size), counts)
+            t = (np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)).astype(np.float32) * step
+            fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
+            fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
+            ix = np.floor(fx + (c[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
+            iy = np.floor(fy + (s[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
+            flat = iy * w + ix
             if protect is not None:
                 flat = flat[~protect.ravel()[flat]]
             lo.ravel()[flat] += p.l_free

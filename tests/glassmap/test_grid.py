@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
 
 
 def test_world_cell_round_trip():
@@ -39,10 +39,14 @@ def test_single_beam_marks_free_then_occupied():
     assert occ.occupied().sum() == 1
 
 
-def test_no_return_clears_but_marks_nothing_and_nan_is_ignored():
+def test_no_return_clears_only_when_configured_and_nan_is_ignored():
     occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-5.0, -5.0), shape=(100, 100)))
+    assert occ.integrate(np.zeros(3), np.array([0.0, 1.0]), np.array([np.inf, np.nan])) == 0
+    assert (occ.log_odds == 0).all()
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-5.0, -5.0), shape=(100, 100)),
+                        OccupancyParams(no_return_range=3.0))
     occ.integrate(np.zeros(3), np.array([0.0, 1.0]), np.array([np.inf, np.nan]))
-    assert (occ.log_odds > 0).sum() == 0 and (occ.log_odds < 0).sum() > 0
+    assert (occ.log_odds > 0).sum() == 0 and (occ.log_odds < 0).sum() == 30
 
 
 def test_protect_mask_keeps_cells_from_being_cleared():
@@ -77,3 +81,24 @@ def test_pgm_yaml_export(tmp_path):
     assert (img == 0).sum() == 1 and (img == 254).sum() >= 10
     ox, oy = occ.grid.origin
     assert "resolution: 0.1" in open(yaml).read() and f"origin: [{ox:.4f}, {oy:.4f}, 0.0]" in open(yaml).read()
+
+
+def test_protect_callable_is_evaluated_after_growth_and_bad_shape_is_refused():
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 20), grow_step_m=1.0))
+    seen = []
+
+    def mask():
+        seen.append(occ.grid.shape)
+        return np.zeros(occ.grid.shape, bool)
+
+    occ.integrate(np.zeros(3), np.array([0.0]), np.array([5.0]), protect=mask)
+    assert seen == [occ.grid.shape] and occ.grid.shape != (20, 20)
+    with pytest.raises(ValueError, match="protect mask shape"):
+        occ.integrate(np.zeros(3), np.array([0.0]), np.array([1.0]), protect=np.zeros((3, 3), bool))
+
+
+def test_each_cell_is_updated_once_per_scan():
+    occ = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 40)))
+    angles = np.full(50, 0.0)  # fifty identical beams: one observation, not fifty
+    occ.integrate(np.zeros(3), angles, np.full(50, 2.0))
+    assert occ.log_odds.max() == pytest.approx(0.85) and occ.log_odds.min() == pytest.approx(-0.4)
