@@ -1,0 +1,297 @@
+"""The per-scan glass path (METHOD.md sections 2-5): incidence angles, classifier, registration, update.
+
+:class:`GlassMapper` owns (or shares) an occupancy grid and a temporary glass map on one
+:class:`~glassmap.grid.MapGrid`. ``process`` takes one scan (laser frame), the laser pose in the map frame
+and the registration sigma (metres), and updates the maps. All steps are vectorized over beams.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from .angles import AngleMethod, AngleParams, incidence_angles
+from .glass import GlassMap, GlassParams
+from .grid import OccupancyGrid
+from .registration import Aggregation, DecayRef, Method, aggregate, nearest_occupied_cells, registration_observations
+from .types import Scan
+
+MAX_ABS_COORD = 1.0e4
+"""Largest |x| or |y| (m) of a laser pose the mapper accepts; beyond it the grid would grow absurdly."""
+
+
+class MappingInputError(ValueError):
+    """A scan, pose or sigma given to the mapper is unusable (the message says which and why)."""
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Settings of the glass path.
+
+    angle_method: "split-merge" (default, chosen from `glassmap angles`) or "hough".
+    registration: "direct" (nearest occupied cell only) or "robust" (k x k window, eq. 6).
+    window: k (3 or 5). decay_ref: eq. 6 distance from c_hat_j ("cell", default) or from the end point.
+    aggregation: "scan" (mean log-odds per cell per scan, default) or "beam" (every beam, the paper).
+    search_radius: cells around the end-point cell searched for the nearest occupied cell c_hat_j.
+    weights: classifier weights stem (path without suffix); None = the weights shipped in the package.
+    protect: which cells free-space updates must not clear when this mapper updates the occupancy grid
+        (beams pass through glass at oblique incidence, which is no evidence that the cell is free):
+        "hits" (default) = cells where a beam classified as glass ended (layer ``<layer>_hits``),
+        "glass" = cells the glass map believes are glass (p > protect_threshold), "none".
+    glass_hits_occupy: a beam classified as glass (p > glass_hit_threshold) raises the occupancy log-odds of
+        its end-point cell to at least OccupancyParams.l_occ. Glass is seen only near normal incidence and
+        oblique beams pass through it, so by the time the first glass return arrives the pane's cells have
+        usually been cleared (to l_min) by earlier pass-through beams; a pass-through is no evidence against
+        glass, so the glass return restores the cell. Applied to the shared grid also when
+        ``update_occupancy=False``.
+    """
+
+    angle_method: AngleMethod = "split-merge"
+    angle_params: AngleParams = field(default_factory=AngleParams)
+    registration: Method = "robust"
+    window: int = 3
+    decay_ref: DecayRef = "cell"
+    aggregation: Aggregation = "scan"
+    search_radius: int = 2
+    weights: str | None = None
+    glass: GlassParams = field(default_factory=GlassParams)
+    protect: Literal["hits", "glass", "none"] = "hits"
+    protect_threshold: float = 0.7
+    glass_hits_occupy: bool = True
+    glass_hit_threshold: float = 0.5
+    layer: str = "glass"
+
+    def __post_init__(self) -> None:
+        if self.registration not in ("direct", "robust"):
+            raise ValueError(f"registration must be 'direct' or 'robust', got {self.registration!r}")
+        if self.window not in (1, 3, 5, 7):
+            raise ValueError(f"window must be 3 or 5 (1 and 7 allowed for experiments), got {self.window}")
+        if self.decay_ref not in ("cell", "endpoint"):
+            raise ValueError(f"decay_ref must be 'cell' or 'endpoint', got {self.decay_ref!r}")
+        if self.aggregation not in ("scan", "beam"):
+            raise ValueError(f"aggregation must be 'scan' or 'beam', got {self.aggregation!r}")
+        if self.protect not in ("hits", "glass", "none"):
+            raise ValueError(f"protect must be 'hits', 'glass' or 'none', got {self.protect!r}")
+        if self.search_radius < 0:
+            raise ValueError(f"search_radius must be >= 0 cells, got {self.search_radius}")
+
+
+@dataclass
+class BeamGlass:
+    """Per-beam result of one scan.
+
+    p_glass: (n,) p(glass), NaN for beams without an angle (or otherwise unusable); incidence: (n,) rad, NaN
+    if none. Counters: beams in the scan, with a usable range, with an incidence angle, classified,
+    registered (contributed to the glass map), and skipped as bad (NaN range or intensity, bad sigma).
+    """
+
+    p_glass: np.ndarray
+    incidence: np.ndarray
+    n_beams: int = 0
+    n_ranged: int = 0
+    n_angle: int = 0
+    n_classified: int = 0
+    n_registered: int = 0
+    n_bad: int = 0
+    no_intensities: bool = False
+
+
+class GlassMapper:
+    """Builds the occupancy grid (optionally) and the temporary glass map, scan by scan."""
+
+    def __init__(self, occupancy: OccupancyGrid | None = None, config: MapperConfig = MapperConfig(),
+                 classifier=None) -> None:
+        self.config = config
+        self.occupancy = occupancy if occupancy is not None else OccupancyGrid()
+        self.grid = self.occupancy.grid
+        self.glass = GlassMap(self.grid, config.glass, layer=config.layer)
+        self.hits_layer = config.layer + "_hits"
+        if config.protect == "hits" and self.hits_layer not in self.grid.layer_names:
+            self.grid.add_layer(self.hits_layer, False, np.bool_)
+        if classifier is None:
+            from .classifier import GlassClassifier
+
+            classifier = (GlassClassifier.load(config.weights) if config.weights
+                          else GlassClassifier.load_default())
+        self.classifier = classifier
+        self.scans = 0
+        self.skipped_scans = 0
+        self._occ_thr = float(math.log(self.occupancy.params.occ_threshold / (1 - self.occupancy.params.occ_threshold)))
+
+    # -- stages --------------------------------------------------------------------------------------------
+    def classify(self, scan: Scan) -> tuple[BeamGlass, np.ndarray]:
+        """Incidence angles and p(glass) per beam (laser frame; needs no pose). Returns the result and the
+        mask of beams that were classified."""
+        r = scan.ranges
+        n = r.shape[0]
+        out = BeamGlass(np.full(n, np.nan), np.full(n, np.nan), n_beams=n)
+        rmax = scan.geometry.range_max
+        with np.errstate(invalid="ignore"):
+            ranged = np.isfinite(r) & (r >= scan.geometry.range_min) & (r <= rmax)
+        out.n_ranged = int(ranged.sum())
+        out.n_bad = int(np.isnan(r).sum())
+        if out.n_ranged == 0:
+            return out, np.zeros(n, dtype=bool)
+        res = incidence_angles(scan.angles, np.where(ranged, r, np.nan), self.config.angle_method,
+                               self.config.angle_params)
+        out.incidence = res.incidence
+        has_angle = np.isfinite(res.incidence)
+        out.n_angle = int(has_angle.sum())
+        if scan.intensities is None:
+            out.no_intensities = True
+            return out, np.zeros(n, dtype=bool)
+        inten = scan.intensities
+        finite_i = np.isfinite(inten)
+        out.n_bad += int((~finite_i & ~np.isnan(r)).sum())
+        use = has_angle & finite_i
+        if use.any():
+            out.p_glass[use] = self.classifier.predict(inten[use], r[use], res.incidence[use])
+        out.n_classified = int(use.sum())
+        return out, use
+
+    def register(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray,
+                 sigma: np.ndarray) -> int:
+        """Registration + Bayesian update of the classified beams ``use`` against the current occupancy grid.
+        ``sigma`` (n,) metres per beam. Returns the number of beams registered."""
+        if not use.any():
+            return 0
+        cfg = self.config
+        ang = laser_pose[2] + scan.angles[use]
+        rr = scan.ranges[use]
+        ends = np.empty((rr.shape[0], 2))
+        ends[:, 0] = laser_pose[0] + rr * np.cos(ang)
+        ends[:, 1] = laser_pose[1] + rr * np.sin(ang)
+        g = self.grid
+        margin = (cfg.window // 2 + cfg.search_radius + 2) * g.resolution
+        g.ensure_contains(ends.min(axis=0) - margin, ends.max(axis=0) + margin)
+        cells, _ = nearest_occupied_cells(ends, g.origin, g.resolution, self.occupancy.log_odds, self._occ_thr,
+                                          cfg.search_radius)
+        obs = registration_observations(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
+                                        g.shape, method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref,
+                                        p_clip=cfg.glass.p_clip)
+        flat, delta = aggregate(obs, cfg.aggregation)
+        self.glass.update(flat, delta)
+        return int(use.sum())
+
+    def protect_mask(self) -> np.ndarray | None:
+        """(H, W) bool cells that free-space updates must not clear (``MapperConfig.protect``), or None."""
+        if self.config.protect == "hits":
+            return self.grid[self.hits_layer]
+        if self.config.protect == "glass":
+            return self.glass.glass_mask(self.config.protect_threshold)
+        return None
+
+    def integrate(self, scan: Scan, pose: np.ndarray) -> None:
+        """Occupancy update of one scan at the laser pose (map frame) with the configured protection."""
+        if self.config.protect != "none":
+            # grow the grid first, as integrate() would, so that the mask has the grid's final shape
+            self._ensure_scan_extent(scan, pose)
+        self.occupancy.integrate(pose, scan.angles, scan.ranges, scan.geometry.range_max,
+                                 protect=self.protect_mask())
+
+    def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray) -> int:
+        """For beams classified as glass (p > glass_hit_threshold): raise the occupancy log-odds of their
+        end-point cells to at least ``l_occ`` (``MapperConfig.glass_hits_occupy``) and record the cells in the
+        ``<layer>_hits`` layer (``protect="hits"``). Returns the number of such beams."""
+        sel = use.copy()
+        sel[use] = beams.p_glass[use] > self.config.glass_hit_threshold
+        if not sel.any():
+            return 0
+        ang = laser_pose[2] + scan.angles[sel]
+        rr = scan.ranges[sel]
+        xy = np.stack([laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)], axis=1)
+        g = self.grid
+        g.ensure_contains(xy.min(axis=0) - 1.0, xy.max(axis=0) + 1.0)
+        cells = g.world_to_cell(xy)
+        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
+        lo = self.occupancy.log_odds.reshape(-1)
+        if self.config.glass_hits_occupy:
+            lo[flat] = np.maximum(lo[flat], np.float32(self.occupancy.params.l_occ))
+        if self.config.protect == "hits":
+            self.grid[self.hits_layer].reshape(-1)[flat] = True
+        return int(sel.sum())
+
+    def _ensure_scan_extent(self, scan: Scan, pose: np.ndarray) -> None:
+        """Grow the grid to everything OccupancyGrid.integrate will touch for this scan (same box)."""
+        p = self.occupancy.params
+        r = scan.ranges
+        with np.errstate(invalid="ignore"):
+            hit = np.isfinite(r) & (r <= scan.geometry.range_max)
+            reach = np.where(hit, r, np.where(np.isposinf(r), p.max_free_range, 0.0))
+        ang = pose[2] + scan.angles
+        xy = pose[:2] + np.stack([np.cos(ang), np.sin(ang)], axis=1) * reach[:, None]
+        lo = np.minimum(xy.min(axis=0), pose[:2]) - 1.0
+        hi = np.maximum(xy.max(axis=0), pose[:2]) + 1.0
+        self.grid.ensure_contains(lo, hi)
+
+    # -- the per-scan path ---------------------------------------------------------------------------------
+    def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,
+                update_occupancy: bool = True) -> BeamGlass:
+        """One scan: incidence angles, p(glass) (one batched torch call), occupancy update (unless the caller
+        did it already: ``update_occupancy=False``), registration and Bayesian update.
+
+        laser_pose: (3,) laser (x, y, yaw) in the map frame (m, rad). sigma: registration sigma (m), scalar or
+        per beam (n,). Raises :class:`MappingInputError` for a bad pose or sigma (nothing is changed);
+        beams with NaN range / intensity or NaN sigma are skipped and counted in ``n_bad``.
+        """
+        pose = np.asarray(laser_pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise MappingInputError(f"laser_pose must be 3 finite numbers (x m, y m, yaw rad), got {laser_pose!r}")
+        if np.any(np.abs(pose[:2]) > MAX_ABS_COORD):
+            raise MappingInputError(f"laser pose {pose[:2]} m is more than {MAX_ABS_COORD:.0f} m from the map "
+                                    "origin; refusing to grow the map that far (check the pose source)")
+        n = scan.ranges.shape[0]
+        sig = np.asarray(sigma, dtype=np.float64)
+        if sig.ndim == 0:
+            sig = np.full(n, float(sig))
+        elif sig.shape != (n,):
+            raise MappingInputError(f"sigma must be a scalar or one value per beam ({n}), got shape {sig.shape}")
+        if np.any(sig < 0):
+            raise MappingInputError("sigma must be >= 0 m")
+        self.scans += 1
+        if n == 0:
+            self.skipped_scans += 1
+            return BeamGlass(np.zeros(0), np.zeros(0))
+        beams, use = self.classify(scan)
+        bad_sigma = ~np.isfinite(sig)
+        beams.n_bad += int((bad_sigma & use).sum())
+        use &= ~bad_sigma
+        if update_occupancy:
+            self.integrate(scan, pose)
+        if self.config.glass_hits_occupy or self.config.protect == "hits":
+            self.mark_glass_hits(beams, use, scan, pose)
+        beams.n_registered = self.register(beams, use, scan, pose, sig)
+        if beams.n_ranged == 0:
+            self.skipped_scans += 1
+        return beams
+
+    # -- outputs -------------------------------------------------------------------------------------------
+    def confidence_map(self) -> np.ndarray:
+        """(H, W) float32 p(glass) on occupied cells, NaN elsewhere."""
+        return self.glass.confidence_map(self.occupancy)
+
+    def export(self, out_dir: str, stem: str = "glass_map", scale: int = 2, crop: bool = True) -> dict[str, str]:
+        """Write the glass confidence map: ``stem.png`` (paper colours, each cell scale x scale pixels,
+        cropped to the explored area unless ``crop=False``), ``stem_glass.npy`` (p(glass) on occupied cells,
+        NaN elsewhere, the whole grid; row = y, column = x), ``stem_glass.json`` (origin, resolution of the
+        npy), and the occupancy map ``stem.pgm`` + ``stem.yaml`` (ROS map_server). Returns the paths."""
+        from .render import glass_confidence_png
+
+        os.makedirs(out_dir, exist_ok=True)
+        base = os.path.join(out_dir, stem)
+        conf = self.confidence_map()
+        png = glass_confidence_png(base + ".png", conf, self.occupancy.free(), scale=scale, crop=crop)
+        npy = base + "_glass.npy"
+        np.save(npy, conf)
+        meta = base + "_glass.json"
+        with open(meta, "w") as f:
+            json.dump({"origin": self.grid.origin.tolist(), "resolution": self.grid.resolution,
+                       "shape": list(conf.shape), "index": "array[iy, ix], cell (0,0) corner at origin",
+                       "values": "p(glass) on occupied cells, NaN elsewhere"}, f, indent=2)
+        pgm, yaml = self.occupancy.save_pgm_yaml(base)
+        return {"png": png, "npy": npy, "json": meta, "pgm": pgm, "yaml": yaml}

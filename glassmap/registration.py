@@ -1,0 +1,191 @@
+"""Registration of per-beam glass probabilities onto grid cells (METHOD.md section 3, eq. 6).
+
+Pure numpy, vectorized over beams (no per-beam loop). Frames: end points are in the map frame (metres);
+cells are (ix, iy) of a :class:`~glassmap.grid.MapGrid`, flat index ``iy * width + ix``.
+
+- :func:`nearest_occupied_cells` finds c_hat_j: the occupied cell nearest to each beam end point within a
+  small search neighbourhood of the end-point cell (fallback: the end-point cell itself).
+- :func:`registration_observations` turns beams into (cell, log-odds) observations for the direct method
+  (c_hat_j gets p(g_j)) or the robust method (a k x k window around c_hat_j, eq. 6 decay).
+- :func:`aggregate` combines the observations of one scan per cell: ``"scan"`` = the mean log-odds of the
+  beams that hit a cell (one observation per cell per scan), ``"beam"`` = the sum (every beam is an
+  independent observation, as the paper does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+Method = Literal["direct", "robust"]
+DecayRef = Literal["cell", "endpoint"]
+Aggregation = Literal["scan", "beam"]
+
+
+def logit(p: np.ndarray | float) -> np.ndarray:
+    """log(p / (1 - p)); p must lie strictly inside (0, 1)."""
+    p = np.asarray(p, dtype=np.float64)
+    return np.log(p) - np.log1p(-p)
+
+
+def decayed_probability(p: np.ndarray, dist: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Eq. 6: ``(p - 0.5) * exp(-dist^2 / (2 sigma^2)) + 0.5``.
+
+    p: classifier output(s); dist: distance(s) in metres; sigma: registration sigma(s) in metres (broadcast).
+    sigma = 0 is the limit: weight 1 at distance 0, weight 0 elsewhere.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64)
+    sigma = np.asarray(sigma, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.exp(-(dist * dist) / (2.0 * sigma * sigma))
+    w = np.where(sigma > 0, w, (dist == 0).astype(np.float64))
+    return (p - 0.5) * w + 0.5
+
+
+def window_offsets(k: int) -> np.ndarray:
+    """(k*k, 2) integer (dx, dy) offsets of a k x k window centred on (0, 0); k odd."""
+    if k < 1 or k % 2 == 0:
+        raise ValueError(f"window size k must be a positive odd number (3 or 5), got {k}")
+    h = k // 2
+    dy, dx = np.mgrid[-h:h + 1, -h:h + 1]
+    return np.stack([dx.ravel(), dy.ravel()], axis=1).astype(np.int64)
+
+
+def _inside(cells: np.ndarray, shape: tuple[int, int], margin: int) -> np.ndarray:
+    h, w = shape
+    return ((cells[:, 0] >= margin) & (cells[:, 0] < w - margin) & (cells[:, 1] >= margin)
+            & (cells[:, 1] < h - margin))
+
+
+def nearest_occupied_cells(end_xy: np.ndarray, origin: np.ndarray, resolution: float, occ_log_odds: np.ndarray,
+                           occ_threshold_log_odds: float, search_radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """c_hat_j for each end point: the occupied cell (log-odds > threshold) whose centre is nearest to the
+    end point, among the (2*search_radius+1)^2 cells around the end-point cell; the end-point cell itself
+    when none is occupied (or when it lies outside the grid).
+
+    end_xy: (n, 2) map-frame metres. Returns (cells (n, 2) int64 as (ix, iy), found (n,) bool: an occupied
+    cell was found). The end-point cell is the nearest cell centre, so an occupied end-point cell is c_hat_j
+    directly; only the other beams search their neighbourhood.
+    """
+    end_xy = np.asarray(end_xy, dtype=np.float64)
+    f = (end_xy - origin) / resolution
+    base = np.floor(f).astype(np.int64)
+    h, w = occ_log_odds.shape
+    flat_lo = occ_log_odds.reshape(-1)
+    found = np.zeros(base.shape[0], dtype=bool)
+    ok = _inside(base, (h, w), 0)
+    found[ok] = flat_lo[base[ok, 1] * w + base[ok, 0]] > occ_threshold_log_odds
+    if search_radius <= 0:
+        return base, found
+    # beams whose end-point cell is not occupied and whose whole search window lies inside the grid
+    look = np.flatnonzero(~found & _inside(base, (h, w), search_radius))
+    if look.size == 0:
+        return base, found
+    offs = window_offsets(2 * search_radius + 1)
+    offs = offs[(offs[:, 0] != 0) | (offs[:, 1] != 0)]  # the centre is known to be free/unknown
+    bl = base[look]
+    flat = (bl[:, 1] * w + bl[:, 0])[:, None] + (offs[:, 1] * w + offs[:, 0])[None, :]
+    occ = flat_lo[flat] > occ_threshold_log_odds  # (m, q)
+    hit = occ.any(axis=1)
+    if not hit.any():
+        return base, found
+    look, bl, occ = look[hit], bl[hit], occ[hit]
+    frac = (f[look] - bl).astype(np.float32)  # position inside the end-point cell, [0, 1)
+    dx = (offs[:, 0].astype(np.float32) + 0.5)[None, :] - frac[:, 0:1]
+    dy = (offs[:, 1].astype(np.float32) + 0.5)[None, :] - frac[:, 1:2]
+    d2 = np.where(occ, dx * dx + dy * dy, np.float32(np.inf))
+    best = np.argmin(d2, axis=1)
+    cells = base.copy()
+    cells[look] = bl + offs[best]
+    found[look] = True
+    return cells, found
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Per-(beam, cell) glass evidence of one scan: flat cell indices (m,) and log-odds (m,)."""
+
+    flat: np.ndarray
+    log_odds: np.ndarray
+
+
+def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.ndarray,
+                              sigma: np.ndarray | float, origin: np.ndarray, resolution: float,
+                              shape: tuple[int, int], method: Method = "robust", k: int = 3,
+                              decay_ref: DecayRef = "cell", p_clip: float = 1e-3) -> Observations:
+    """Observations of the direct or robust registration.
+
+    p_glass (n,) classifier outputs in (0, 1); end_xy (n, 2) map-frame end points (m); centre_cells (n, 2)
+    c_hat_j as (ix, iy); sigma scalar or (n,) metres. Direct: c_hat_j receives logit(p). Robust: each cell c
+    of the k x k window around c_hat_j receives logit of eq. 6, with the distance measured from the centre
+    of c_hat_j (``decay_ref="cell"``: c_hat_j gets exactly p) or from the end point (``"endpoint"``).
+    Cells outside the grid are dropped; observations of exactly 0.5 (log-odds 0) are dropped.
+    """
+    p = np.clip(np.asarray(p_glass, dtype=np.float64), p_clip, 1.0 - p_clip)
+    n = p.shape[0]
+    h, w = shape
+    centre_cells = np.asarray(centre_cells, dtype=np.int64)
+    if method == "direct":
+        ok = _inside(centre_cells, shape, 0)
+        return Observations((centre_cells[:, 1] * w + centre_cells[:, 0])[ok], logit(p)[ok])
+    if method != "robust":
+        raise ValueError(f"registration method must be 'direct' or 'robust', got {method!r}")
+    offs = window_offsets(k)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))[:, None]
+    if decay_ref == "cell":
+        dist = (np.hypot(offs[:, 0], offs[:, 1]) * resolution)[None, :]
+    elif decay_ref == "endpoint":
+        centres = origin + (centre_cells[:, None, :] + offs[None, :, :] + 0.5) * resolution
+        d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]
+        dist = np.hypot(d[..., 0], d[..., 1])
+    else:
+        raise ValueError(f"decay reference must be 'cell' or 'endpoint', got {decay_ref!r}")
+    pc = np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip)
+    lo = logit(pc)
+    flat = (centre_cells[:, 1] * w + centre_cells[:, 0])[:, None] + (offs[:, 1] * w + offs[:, 0])[None, :]
+    inside = _inside(centre_cells, shape, k // 2)
+    if inside.all():
+        ok = lo != 0.0
+    else:
+        cx = centre_cells[:, 0:1] + offs[None, :, 0]
+        cy = centre_cells[:, 1:2] + offs[None, :, 1]
+        ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h) & (lo != 0.0)
+    return Observations(flat[ok], lo[ok])
+
+
+def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:
+    """Combine one scan's observations per cell. Returns (unique flat cells, log-odds increment per cell).
+
+    ``"scan"``: the mean log-odds over the observations of the cell (many beams hitting one cell in one
+    scan are not independent evidence); ``"beam"``: the sum (every beam counts, the paper's update).
+    """
+    if aggregation not in ("scan", "beam"):
+        raise ValueError(f"aggregation must be 'scan' or 'beam', got {aggregation!r}")
+    if obs.flat.size == 0:
+        return obs.flat.astype(np.int64), obs.log_odds.astype(np.float64)
+    lo_idx, hi_idx = int(obs.flat.min()), int(obs.flat.max())
+    span = hi_idx - lo_idx + 1
+    if span <= 8 * obs.flat.size + 1024:
+        # dense bincount over a compact touched index range: cheaper than sorting (a wide map makes the
+        # range of a scan's cells span whole rows, where sorting wins)
+        local = obs.flat - lo_idx
+        count = np.bincount(local, minlength=span)
+        uniq_local = np.flatnonzero(count)
+        total = np.bincount(local, weights=obs.log_odds, minlength=span)[uniq_local]
+        uniq, count = uniq_local + lo_idx, count[uniq_local]
+    else:
+        uniq, inv, count = np.unique(obs.flat, return_inverse=True, return_counts=True)
+        total = np.bincount(inv, weights=obs.log_odds, minlength=uniq.size)
+    if aggregation == "beam":
+        return uniq, total
+    return uniq, total / count
+
+
+def bayes_update(layer: np.ndarray, flat: np.ndarray, delta: np.ndarray, l_min: float, l_max: float) -> None:
+    """Eq. 7 in log-odds on the cells ``flat`` of ``layer`` (in place): l += delta, clamped to
+    [l_min, l_max]. ``flat`` must be unique (use :func:`aggregate`)."""
+    v = layer.reshape(-1)
+    v[flat] = np.clip(v[flat] + delta, l_min, l_max)
