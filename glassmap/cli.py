@@ -14,6 +14,11 @@ import sys
 # Modules that add subcommands, in the order they appear in --help.
 COMMAND_MODULES = [
     "glassmap.sim.cli",
+    "glassmap.glass_cli",
+    "glassmap.pose.cli",
+    "drivers.pioneer.cli",
+    "drivers.hokuyo.cli",
+    "runtime.cli",
 ]
 
 

@@ -1,0 +1,372 @@
+"""The online pose estimator: odometry prediction + correlative scan matching, fused by an EKF.
+
+Per scan (``update``): interpolate wheel odometry to the scan time, predict the base pose in the map frame
+with the motion-noise model, match the scan against a likelihood field of the occupancy grid built so far,
+fuse the match (pose + covariance from the score distribution) with the prediction, then integrate the
+scan into the shared occupancy grid at the corrected laser pose. The map frame is anchored at
+``EstimatorConfig.initial_pose``; there is no loop closure (drift is bounded by matching against the map
+built so far, not removed).
+
+Glass: a beam that hits glass near normal incidence returns from the pane, a beam at a larger angle
+passes through and returns from what is behind, so the same pane is sometimes in the scan and sometimes
+not, and the map holds it only partly. The likelihood-field score is robust to that (a floor per point),
+and ``glass_weighting`` down-weights beams whose end point falls on a cell the ``"glass"`` layer of the
+grid believes is glass (see :meth:`PoseEstimator.glass_weights`); ``protect_glass`` stops beams through
+glass from clearing such cells. The effect is measured by ``glassmap pose eval --glass-weighting``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
+from glassmap.pose.field import FieldParams, LikelihoodField
+from glassmap.pose.filter import PoseEKF
+from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, MatchResult, select_points
+from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, relative
+from glassmap.types import Odometry, PoseEstimate, Scan
+
+log = logging.getLogger(__name__)
+
+GLASS_LAYER = "glass"
+MAP_VAR_LAYER = "pose_var_xy"
+MAP_VAR_YAW_LAYER = "pose_var_yaw"
+HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Settings of :class:`PoseEstimator`. Lengths in metres, angles in radians, times in seconds.
+
+    laser_mount: laser pose (x, y, yaw) in the base frame (the simulated and the real Pioneer carry the
+        Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here.
+    range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
+        (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
+    field_refresh_scans: the likelihood field is rebuilt from the grid every this many scans (and when the
+        robot nears the edge of the field's crop or the grid grows).
+    gate_chi2: matches whose innovation has a squared Mahalanobis distance above this are rejected
+        (chi-square, 3 dof; 21.1 is the 99.99 % point).
+    glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
+        glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5).
+    protect_glass: cells with p(glass) above glass_protect_p are not cleared by beams passing through.
+    integrate: integrate each scan into the occupancy grid at the corrected pose.
+    subcell_walls: keep the mean end-point position per cell (layers ``pose_hit_*``) and measure the
+        likelihood field's distances to it rather than to cell centres (see LikelihoodField.rebuild).
+    map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
+        map built so far (see :class:`PoseEstimator`): cells remember the variance of the pose that placed
+        them, and a match inherits the variance of the cells it matched.
+    """
+
+    laser_mount: tuple[float, float, float] = (0.1, 0.0, 0.0)
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    initial_sigma: tuple[float, float, float] = (0.005, 0.005, float(np.radians(0.2)))
+    motion: MotionNoise = dc_field(default_factory=MotionNoise)
+    matcher: MatcherConfig = dc_field(default_factory=MatcherConfig)
+    likelihood: FieldParams = dc_field(default_factory=FieldParams)
+    occupancy: OccupancyParams = dc_field(default_factory=OccupancyParams)
+    range_sigma: float = 0.01
+    range_sigma_per_m: float = 0.001
+    field_refresh_scans: int = 10
+    gate_chi2: float = 21.1
+    glass_weighting: bool = False
+    glass_min_weight: float = 0.1
+    protect_glass: bool = False
+    glass_protect_p: float = 0.7
+    integrate: bool = True
+    map_uncertainty: bool = True
+    subcell_walls: bool = True
+
+
+@dataclass
+class EstimatorStats:
+    """Counters and timings (s) of the last scan and totals."""
+
+    scans: int = 0
+    matched: int = 0
+    no_match: int = 0
+    gated: int = 0
+    field_rebuilds: int = 0
+    t_core: float = 0.0  # prediction + matching + covariance + fusion of the last scan
+    t_field: float = 0.0  # likelihood-field rebuild during the last scan (0 if none)
+    t_integrate: float = 0.0  # occupancy integration of the last scan
+    last_match: MatchResult | None = None
+
+
+class PoseEstimator:
+    """Online pose + covariance of the base in the map frame, one estimate per scan.
+
+    ``predict(odom)`` buffers wheel odometry (any rate); ``update(scan)`` returns the :class:`PoseEstimate`
+    at ``scan.stamp`` and integrates the scan into ``occupancy`` (shared with the glass mapper).
+
+    Covariance. The EKF tracks the pose relative to the map built so far (``ekf.cov``: odometry noise
+    and match covariances); that alone would be overconfident, because the map itself is only as good as
+    the poses that built it and every scan matched against the same part of the map shares its error.
+    So every end-point cell stores the variance it was placed with (layers ``pose_var_xy``: sigma_xy^2 +
+    (r sigma_theta)^2 of the reported covariance, and ``pose_var_yaw``; the smallest seen is kept), a match
+    reads the median variance of the cells under its end points (``map_var``), and the reported covariance
+    is ``ekf.cov + diag(map_var_xy, map_var_xy, map_var_yaw)``. Exploring new ground makes it grow like
+    a random walk; coming back to well-known ground makes it shrink again.
+    """
+
+    def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
+        self.config = config
+        self.occupancy = occupancy if occupancy is not None else OccupancyGrid(MapGrid(), config.occupancy)
+        self.mount = np.asarray(config.laser_mount, dtype=np.float64)
+        if self.mount.shape != (3,) or not np.all(np.isfinite(self.mount)):
+            raise ValueError(f"laser_mount must be 3 finite numbers (x, y, yaw), got {config.laser_mount!r}")
+        self.ekf = PoseEKF(np.asarray(config.initial_pose, dtype=np.float64),
+                           np.diag(np.square(np.asarray(config.initial_sigma, dtype=np.float64))))
+        self.odometry = OdometryBuffer()
+        self.field = LikelihoodField(config.likelihood)
+        self.matcher = CorrelativeMatcher(config.matcher)
+        self.stats = EstimatorStats()
+        self._last_odom: np.ndarray | None = None
+        self._last_stamp: float | None = None
+        self._since_rebuild = 0
+        self.map_var = np.zeros(2)  # (xy m^2, yaw rad^2) of the map region matched last
+        if config.subcell_walls:
+            for name in HIT_LAYERS:
+                if name not in self.occupancy.grid.layer_names:
+                    self.occupancy.grid.add_layer(name, 0.0, np.float32)
+        # optional callable -> (H, W) bool mask of cells the occupancy update must not clear (e.g. the glass
+        # mapper's ``protect_mask``); called after the grid has grown to contain the scan
+        self.protect_mask_fn = None
+        if config.map_uncertainty:
+            for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER):
+                if name not in self.occupancy.grid.layer_names:
+                    self.occupancy.grid.add_layer(name, np.inf, np.float32)
+
+    # ------------------------------------------------------------------ inputs
+    def predict(self, odom: Odometry) -> None:
+        """Buffer one wheel-odometry message (odom frame, host time); the prediction itself happens in
+        :meth:`update` at the scan's time."""
+        self.odometry.add(odom)
+
+    def update(self, scan: Scan) -> PoseEstimate:
+        """Estimate the base pose at ``scan.stamp``, fuse the scan match, integrate the scan; never raises
+        on bad scan contents (no beams, all max range, NaN): it then falls back to odometry, whose
+        covariance keeps growing. A non-finite stamp is a ValueError."""
+        cfg = self.config
+        st = self.stats
+        t0 = time.perf_counter()
+        stamp = float(scan.stamp)
+        if not np.isfinite(stamp):
+            raise ValueError(f"scan {scan.seq} has a non-finite stamp {scan.stamp!r}; stamps are host seconds")
+        # ---- prediction from odometry interpolated to the scan time
+        if len(self.odometry):
+            odom_now = self.odometry.pose_at(stamp)
+            delta = relative(self._last_odom, odom_now) if self._last_odom is not None else np.zeros(3)
+            self._last_odom = odom_now
+        else:
+            delta = np.zeros(3)
+        dt = 0.0 if self._last_stamp is None else max(stamp - self._last_stamp, 0.0)
+        self._last_stamp = stamp
+        self.ekf.predict(delta, cfg.motion.covariance(delta, dt))
+        t_pred = time.perf_counter() - t0
+
+        # ---- likelihood field (rebuilt every few scans; timed separately)
+        t1 = time.perf_counter()
+        st.t_field = 0.0
+        self._since_rebuild += 1
+        if (self._since_rebuild >= cfg.field_refresh_scans
+                or self.field.needs_rebuild(self.occupancy, self.ekf.pose[:2], cfg.matcher.range_max * 0.25 + 1.0)):
+            g = self.occupancy.grid
+            pts_layers = tuple(g[n] for n in HIT_LAYERS) if cfg.subcell_walls else None
+            self.field.rebuild(self.occupancy, self.ekf.pose[:2], pts_layers)
+            self._since_rebuild = 0
+            st.field_rebuilds += 1
+            st.t_field = time.perf_counter() - t1
+
+        # ---- matching + fusion
+        t2 = time.perf_counter()
+        ranges = np.asarray(scan.ranges, dtype=np.float64)
+        angles = scan.angles
+        weights = None
+        if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names:
+            weights = self.glass_weights(self.laser_pose_of(self.ekf.pose), angles, ranges)
+        res = None
+        if ranges.size and self.field.ready:
+            pts, w, _ = select_points(angles, ranges, self.mount, cfg.matcher, weights)
+            res = self.matcher.match(self.field, pts, w, self.ekf.pose, self.ekf.cov)
+        st.last_match = res
+        if res is None:
+            st.no_match += 1
+        else:
+            _, _, d2 = self.ekf.innovation(res.pose, res.covariance)
+            if d2 > cfg.gate_chi2:
+                st.gated += 1
+                log.debug("scan %d: match rejected by the gate (d2 = %.1f)", scan.seq, d2)
+            else:
+                self.ekf.correct(res.pose, res.covariance)
+                st.matched += 1
+                if cfg.map_uncertainty:
+                    self.map_var = self._matched_map_variance(pts, self.ekf.pose)
+        st.t_core = t_pred + (time.perf_counter() - t2)
+
+        # ---- map update at the corrected pose
+        t3 = time.perf_counter()
+        if cfg.integrate and ranges.size:
+            protect = None
+            if cfg.protect_glass or self.protect_mask_fn is not None:
+                self._ensure_extent(angles, ranges, scan.geometry.range_max)
+                protect = self.protect_mask_fn() if self.protect_mask_fn is not None else self.glass_protect_mask()
+            self.occupancy.integrate(self.laser_pose_of(self.ekf.pose), angles, ranges,
+                                     scan.geometry.range_max, protect=protect)
+        if ranges.size and (cfg.map_uncertainty or cfg.subcell_walls):
+            # bookkeeping of the end points at the corrected pose, also when another component (the glass
+            # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
+            if not cfg.integrate:
+                self._ensure_extent(angles, ranges, scan.geometry.range_max)
+            if cfg.map_uncertainty:
+                self._store_map_variance(angles, ranges, scan.geometry.range_max)
+            if cfg.subcell_walls:
+                self._store_hits(angles, ranges, scan.geometry.range_max)
+        st.t_integrate = time.perf_counter() - t3
+        st.scans += 1
+        return self.estimate(stamp)
+
+    def _ensure_extent(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
+        """Grow the grid to hold this scan (as OccupancyGrid.integrate would) so a protect mask fits."""
+        lp = self.laser_pose_of(self.ekf.pose)
+        p = self.occupancy.params
+        hit = np.isfinite(ranges) & (ranges <= range_max)
+        reach = np.where(hit, ranges, np.where(np.isposinf(ranges), p.max_free_range, 0.0))
+        a = lp[2] + angles
+        pts = np.concatenate([lp[None, :2], lp[:2] + np.stack([reach * np.cos(a), reach * np.sin(a)], axis=1)])
+        self.occupancy.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
+
+    def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
+        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls."""
+        hit = np.isfinite(ranges) & (ranges <= range_max)
+        if not hit.any():
+            return
+        g = self.occupancy.grid
+        lp = self.laser_pose_of(self.ekf.pose)
+        a = lp[2] + angles[hit]
+        xy = lp[:2] + np.stack([ranges[hit] * np.cos(a), ranges[hit] * np.sin(a)], axis=1)
+        cells = g.world_to_cell(xy)
+        ok = g.in_bounds(cells)
+        cells, xy = cells[ok], xy[ok]
+        off = xy - (g.origin + cells * g.resolution)
+        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
+        for name, vals in zip(HIT_LAYERS, (off[:, 0], off[:, 1], np.ones(len(flat)))):
+            np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
+
+    # ------------------------------------------------------------------ map uncertainty
+    def _matched_map_variance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Median (xy, yaw) variance of the cells under the matched end points (base-frame pts at pose); the
+        median, because a few far cells placed with a long lever arm (r sigma_theta) would dominate a mean."""
+        g = self.occupancy.grid
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        xy = pose[:2] + pts @ np.array([[c, s], [-s, c]])
+        cells = g.world_to_cell(xy)
+        ok = g.in_bounds(cells)
+        vxy = g[MAP_VAR_LAYER][cells[ok, 1], cells[ok, 0]]
+        vyaw = g[MAP_VAR_YAW_LAYER][cells[ok, 1], cells[ok, 0]]
+        fin = np.isfinite(vxy)
+        if not fin.any():
+            return self.map_var
+        return np.array([float(np.median(vxy[fin])), float(np.median(vyaw[fin]))])
+
+    def _store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
+        """Give the end-point cells of this scan the variance of the reported pose (keep the smallest)."""
+        hit = np.isfinite(ranges) & (ranges <= range_max)
+        if not hit.any():
+            return
+        g = self.occupancy.grid
+        cov = self.ekf.cov[:2, :2]
+        sxy2 = float(np.linalg.eigvalsh(cov).max()) + self.map_var[0]
+        sth2 = float(self.ekf.cov[2, 2]) + self.map_var[1]
+        lp = self.laser_pose_of(self.ekf.pose)
+        r = ranges[hit]
+        a = lp[2] + angles[hit]
+        cells = g.world_to_cell(lp[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
+        ok = g.in_bounds(cells)
+        cells, r = cells[ok], r[ok]
+        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
+        var = (sxy2 + r * r * sth2).astype(np.float32)
+        lay, lay_yaw = g[MAP_VAR_LAYER].ravel(), g[MAP_VAR_YAW_LAYER].ravel()
+        np.minimum.at(lay, flat, var)
+        np.minimum.at(lay_yaw, flat, np.float32(sth2))
+
+    # ------------------------------------------------------------------ outputs
+    def covariance(self) -> np.ndarray:
+        """Reported 3x3 covariance: the EKF's (relative to the map) plus the matched map region's."""
+        return self.ekf.cov + np.diag([self.map_var[0], self.map_var[0], self.map_var[1]])
+
+    def estimate(self, stamp: float | None = None) -> PoseEstimate:
+        """The current estimate (base, map frame) with the reported covariance."""
+        x, y, yaw = self.ekf.pose
+        s = self._last_stamp if stamp is None else stamp
+        return PoseEstimate(stamp=0.0 if s is None else s, x=float(x), y=float(y), yaw=float(yaw),
+                            covariance=self.covariance())
+
+    def laser_pose_of(self, base_pose: np.ndarray) -> np.ndarray:
+        """Laser pose (3,) in the map frame for a base pose (3,) in the map frame."""
+        return compose(np.asarray(base_pose, dtype=np.float64), self.mount)
+
+    def laser_pose(self, estimate: PoseEstimate) -> np.ndarray:
+        """Laser pose (3,) (x, y, yaw) in the map frame of an estimate of the base."""
+        return self.laser_pose_of(estimate.pose)
+
+    def laser_covariance(self, estimate: PoseEstimate) -> np.ndarray:
+        """3x3 covariance of the laser pose (the mount's lever arm turns yaw uncertainty into position)."""
+        ja, _ = compose_jacobians(estimate.pose, self.mount)
+        return ja @ estimate.covariance @ ja.T
+
+    def registration_sigma(self, estimate: PoseEstimate, ranges: np.ndarray) -> np.ndarray:
+        """Per-beam registration sigma (m) of the beam end points, shape (n,):
+
+            sigma(r)^2 = sigma_xy^2 + (r * sigma_theta)^2 + sigma_r(r)^2
+
+        sigma_xy: sqrt of the larger eigenvalue of the laser position covariance (the worst direction, so a
+        corridor's long axis counts); sigma_theta: yaw standard deviation; sigma_r(r) = range_sigma +
+        range_sigma_per_m * r (laser range noise). A yaw error moves an end point sideways by r * dtheta, a
+        position error moves it rigidly; the three are treated as independent. NaN / inf ranges -> NaN.
+        """
+        r_in = np.asarray(ranges, dtype=np.float64)
+        r = np.where(np.isfinite(r_in), r_in, 0.0)
+        cov = self.laser_covariance(estimate)
+        sxy2 = max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0)
+        sth2 = max(float(cov[2, 2]), 0.0)
+        sr = self.config.range_sigma + self.config.range_sigma_per_m * r
+        out = np.sqrt(sxy2 + r * r * sth2 + sr * sr)
+        return np.where(np.isfinite(r_in), out, np.nan)
+
+    # ------------------------------------------------------------------ glass
+    def glass_probability_at(self, xy: np.ndarray) -> np.ndarray:
+        """p(glass) (n,) of the grid cells under map-frame points xy (n, 2); 0.5 off the grid or without a
+        ``"glass"`` layer."""
+        g = self.occupancy.grid
+        xy = np.asarray(xy, dtype=np.float64)
+        out = np.full(xy.shape[0], 0.5)
+        if GLASS_LAYER not in g.layer_names or xy.size == 0:
+            return out
+        ok = np.all(np.isfinite(xy), axis=1)
+        cells = g.world_to_cell(np.where(ok[:, None], xy, 0.0))
+        ok &= g.in_bounds(cells)
+        lo = g[GLASS_LAYER][cells[ok, 1], cells[ok, 0]].astype(np.float64)
+        out[ok] = 1.0 / (1.0 + np.exp(-lo))
+        return out
+
+    def glass_weights(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+        """Matching weight per beam (n,): 1 for beams whose end point is not believed glass, falling
+        linearly to ``glass_min_weight`` as p(glass) of the end point's cell goes from 0.5 to 1."""
+        r = np.where(np.isfinite(ranges), ranges, 0.0)
+        a = laser_pose[2] + angles
+        xy = laser_pose[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+        p = self.glass_probability_at(xy)
+        k = np.clip(2.0 * p - 1.0, 0.0, 1.0)
+        return 1.0 - (1.0 - self.config.glass_min_weight) * k
+
+    def glass_protect_mask(self) -> np.ndarray | None:
+        """(H, W) bool: cells whose p(glass) exceeds ``glass_protect_p`` (None without a glass layer)."""
+        g = self.occupancy.grid
+        if GLASS_LAYER not in g.layer_names:
+            return None
+        lo_t = np.log(self.config.glass_protect_p / (1.0 - self.config.glass_protect_p))
+        return g[GLASS_LAYER] > lo_t

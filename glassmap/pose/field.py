@@ -1,0 +1,116 @@
+"""Likelihood field for scan matching, derived from the occupancy grid (map frame).
+
+Each cell holds the log-likelihood of a beam end point falling in it:
+``log(exp(-d^2 / (2 sigma_hit^2)) + p_floor)`` with d the distance (m) to the nearest occupied cell; the
+floor stands for everything the map does not explain (people, glass seen for the first time, unknown
+space). A second array holds, per cell, the maximum over the ``f x f`` block starting at that cell: looking
+a point up there gives an upper bound of the fine score over a coarse translation step (multi-resolution
+search). The field covers a square crop around the robot and is rebuilt from the grid when asked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from glassmap.grid import OccupancyGrid
+
+
+@dataclass(frozen=True)
+class FieldParams:
+    """sigma_hit (m): end-point spread around a wall; p_floor: uniform floor (relative to the peak 1);
+    occupied_log_odds: cells above it count as walls; half_size (m): half-width of the crop around the
+    robot; pad (cells): border of floor cells so that lookups near the edge stay in the array;
+    coarse_factor: cells per coarse step of the multi-resolution search."""
+
+    sigma_hit: float = 0.05
+    p_floor: float = 0.05
+    occupied_log_odds: float = 0.6
+    half_size: float = 14.0
+    pad: int = 64
+    coarse_factor: int = 4
+
+
+class LikelihoodField:
+    """Fine and coarse (block-max) log-likelihood arrays over a crop of the occupancy grid.
+
+    ``origin`` is the map-frame (x, y) of the corner of cell (0, 0) of the arrays, ``resolution`` the grid's.
+    Arrays are indexed ``[iy, ix]`` and stored flat for fast gathers.
+    """
+
+    def __init__(self, params: FieldParams = FieldParams()) -> None:
+        self.params = params
+        self.fine: np.ndarray | None = None
+        self.coarse: np.ndarray | None = None
+        self.origin = np.zeros(2)
+        self.resolution = 0.05
+        self.shape = (0, 0)
+        self.n_occupied = 0
+        self.center = np.zeros(2)
+        self.generation = -1
+
+    @property
+    def ready(self) -> bool:
+        return self.fine is not None and self.n_occupied > 0
+
+    @property
+    def floor(self) -> float:
+        return float(np.log(self.params.p_floor))
+
+    def rebuild(self, occupancy: OccupancyGrid, center_xy: np.ndarray,
+                points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+        """Recompute the field from ``occupancy`` on the crop centred on ``center_xy`` (map frame, m).
+
+        points: optional full-grid layers (sum of x offsets, sum of y offsets, count) of the end points that
+        fell in each cell, offsets in metres from the cell's corner. Distances are then measured to the mean
+        end point of the nearest occupied cell instead of its centre: a wall that does not lie on a cell
+        centre is no longer moved by up to half a cell (which would bias matching by about a centimetre
+        and make the map creep as new walls come into view)."""
+        p = self.params
+        g = occupancy.grid
+        res = g.resolution
+        h, w = g.shape
+        half = int(np.ceil(p.half_size / res))
+        cx, cy = g.world_to_cell(np.asarray(center_xy, dtype=np.float64))
+        x0, x1 = max(cx - half, 0), min(cx + half + 1, w)
+        y0, y1 = max(cy - half, 0), min(cy + half + 1, h)
+        self.center = np.asarray(center_xy, dtype=np.float64).copy()
+        self.generation = g.generation
+        self.resolution = res
+        if x1 <= x0 or y1 <= y0:
+            self.fine, self.coarse, self.n_occupied = None, None, 0
+            return
+        occ = occupancy.log_odds[y0:y1, x0:x1] > p.occupied_log_odds
+        self.n_occupied = int(occ.sum())
+        pad = p.pad
+        floor = np.float32(np.log(p.p_floor))
+        field = np.full((y1 - y0 + 2 * pad, x1 - x0 + 2 * pad), floor, dtype=np.float32)
+        if self.n_occupied:
+            # distances only matter up to ~3 sigma_hit: beyond, the floor dominates
+            if points is None:
+                d = ndimage.distance_transform_edt(~occ) * res
+            else:
+                _, (ny, nx) = ndimage.distance_transform_edt(~occ, return_indices=True)
+                sx, sy, cnt = (a[y0:y1, x0:x1] for a in points)
+                c = cnt[ny, nx]
+                has = c > 0
+                mx = np.where(has, sx[ny, nx] / np.where(has, c, 1), 0.5 * res)  # mean offset in the cell (m)
+                my = np.where(has, sy[ny, nx] / np.where(has, c, 1), 0.5 * res)
+                gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0]
+                d = np.hypot((nx - gx - 0.5) * res + mx, (ny - gy - 0.5) * res + my)
+            inner = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
+            field[pad:-pad, pad:-pad] = inner
+        f = p.coarse_factor
+        coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
+        self.fine, self.coarse = field.ravel(), coarse.ravel()
+        self.shape = field.shape
+        self.origin = g.origin + (np.array([x0, y0]) - pad) * res
+
+    def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
+        """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of
+        the crop's edge."""
+        if self.fine is None or occupancy.grid.generation != self.generation:
+            return True
+        return bool(np.max(np.abs(np.asarray(xy) - self.center)) > self.params.half_size - margin)

@@ -1,0 +1,49 @@
+"""Extended Kalman filter over the base pose (x, y, yaw) in the map frame.
+
+Prediction composes the odometry increment (base frame) onto the state and propagates the covariance with
+the SE(2) Jacobians; correction fuses a full-pose measurement (the scan match) with its covariance, using
+the Joseph form so the covariance stays symmetric positive definite.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from glassmap.pose.motion import compose, compose_jacobians
+from glassmap.types import wrap_angle
+
+
+class PoseEKF:
+    """State ``pose`` (3,) (m, m, rad) and ``cov`` (3, 3) (m^2, rad^2), map frame."""
+
+    def __init__(self, pose: np.ndarray, cov: np.ndarray) -> None:
+        self.pose = np.asarray(pose, dtype=np.float64).copy()
+        self.cov = np.asarray(cov, dtype=np.float64).copy()
+        if self.pose.shape != (3,) or self.cov.shape != (3, 3):
+            raise ValueError("PoseEKF needs a (3,) pose and a (3, 3) covariance")
+
+    def predict(self, delta: np.ndarray, q: np.ndarray) -> None:
+        """Apply the relative motion ``delta`` (base frame at the previous pose) with covariance ``q``."""
+        ja, jb = compose_jacobians(self.pose, delta)
+        self.pose = compose(self.pose, delta)
+        self.cov = ja @ self.cov @ ja.T + jb @ q @ jb.T
+        self.cov = 0.5 * (self.cov + self.cov.T)
+
+    def innovation(self, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(innovation y, innovation covariance S, squared Mahalanobis distance y^T S^-1 y)."""
+        y = np.asarray(z, dtype=np.float64) - self.pose
+        y[2] = float(wrap_angle(y[2]))
+        s = self.cov + r
+        return y, s, float(y @ np.linalg.solve(s, y))
+
+    def correct(self, z: np.ndarray, r: np.ndarray) -> float:
+        """Fuse a direct pose measurement ``z`` (3,) with covariance ``r``; returns the squared Mahalanobis
+        distance of the innovation."""
+        y, s, d2 = self.innovation(z, r)
+        k = np.linalg.solve(s.T, self.cov.T).T  # P S^-1 (S symmetric)
+        self.pose = self.pose + k @ y
+        self.pose[2] = float(wrap_angle(self.pose[2]))
+        ikh = np.eye(3) - k
+        self.cov = ikh @ self.cov @ ikh.T + k @ r @ k.T
+        self.cov = 0.5 * (self.cov + self.cov.T)
+        return d2

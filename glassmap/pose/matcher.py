@@ -1,0 +1,261 @@
+"""Correlative scan-to-map matching (Olson 2009 style) with a covariance from the score distribution.
+
+The scan's end points (base frame) are scored against a :class:`LikelihoodField` for a lattice of poses
+(x, y in grid cells, yaw in steps small enough that the farthest typical point moves about one cell):
+score(pose) = sum_j w_j * L(R(yaw) p_j + t). Two resolutions: the whole search window is scored at a
+coarse translation step on the block-max field (an upper bound of the fine score), then the fine lattice is
+scored around the best coarse candidates. All poses of one stage are scored in one vectorized gather.
+
+Covariance: the scores of the fine lattice around the peak are turned into a distribution
+pi(pose) ~ exp(beta * (score - max)), beta = ``independent_points / sum(w)`` (end points are strongly
+correlated, so the scan carries the information of fewer independent points than it has; the value is
+calibrated on simulated runs with NEES, see ``glassmap.pose.evaluate``). The measurement is the mean of pi,
+its covariance the second moment of pi plus a floor for the sub-lattice interpolation. Where pi is
+curved, the measurement is the vertex of a parabola through the peak score and its neighbours (per axis)
+rather than the mean (which snaps to the lattice when pi is narrow); the mean is kept on flat axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from glassmap.pose.field import LikelihoodField
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    """Search and scoring settings. Lengths in metres, angles in radians.
+
+    range_min / range_max: beams used for matching (long beams are noisy and move most with yaw);
+    voxel: end points are thinned to one per voxel (m) so that near walls do not dominate; max_points:
+    then thinned by stride to at most this many; min_points: fewer usable points -> no match.
+    window_sigmas: the search half-width is this many prior standard deviations, clipped to
+    [xy_window_min, xy_window_max] and [yaw_window_min, yaw_window_max].
+    fine_half_cells / fine_half_yaw: half-size (lattice steps) of the fine window used for the peak and the
+    covariance; yaw_step_min/max: bounds of the fine yaw step; max_refine: coarse candidates refined.
+    independent_points: tempering of the score distribution (see module docstring).
+    bilinear: interpolate the likelihood field bilinearly in the fine stage (smooth scores, sub-cell
+        accuracy; four lookups per point).
+    subcell_floor: standard deviation (in lattice steps) added to the covariance for the residual error of
+        the sub-lattice peak interpolation.
+    switch_margin: a window away from the prior replaces the prior-centred one only if its peak score is
+        better by this much (log-likelihood units: clearly better, not noise along a flat ridge).
+    min_quality: mean end-point likelihood at the peak (0..1) below which the match is rejected.
+    """
+
+    range_min: float = 0.3
+    range_max: float = 15.0
+    voxel: float = 0.08
+    max_points: int = 200
+    min_points: int = 25
+    window_sigmas: float = 3.0
+    xy_window_min: float = 0.15
+    xy_window_max: float = 0.5
+    yaw_window_min: float = np.radians(2.0)
+    yaw_window_max: float = np.radians(10.0)
+    fine_half_cells: int = 3
+    fine_half_yaw: int = 3
+    yaw_step_min: float = np.radians(0.1)
+    yaw_step_max: float = np.radians(0.25)
+    max_refine: int = 1
+    switch_margin: float = 2.0
+    subcell_floor: float = 0.15
+    bilinear: bool = True
+    independent_points: float = 50.0
+    min_quality: float = 0.25
+
+
+@dataclass
+class MatchResult:
+    """pose (3,) base in the map frame (mean of the score distribution); covariance 3x3 (m^2, rad^2);
+    peak_pose (3,) the best lattice pose; quality: mean end-point likelihood at the peak (0..1);
+    n_points used; n_poses scored; edge: the peak was on the border of the fine window."""
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    peak_pose: np.ndarray
+    quality: float
+    n_points: int
+    n_poses: int
+    edge: bool
+
+
+def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, config: MatcherConfig,
+                  weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """End points usable for matching, in the base frame: returns (points (m, 2), weights (m,), beam index
+    (m,)). Beams that are NaN, inf, outside [range_min, range_max] or with weight 0 are dropped; points are
+    thinned to one per ``voxel`` and to at most ``max_points``."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    ok = np.isfinite(ranges) & (ranges >= config.range_min) & (ranges <= config.range_max)
+    if weights is not None:
+        ok &= np.isfinite(weights) & (weights > 0)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return np.zeros((0, 2)), np.zeros(0), idx
+    a = mount[2] + angles[idx]
+    r = ranges[idx]
+    pts = np.stack([mount[0] + r * np.cos(a), mount[1] + r * np.sin(a)], axis=1)
+    keys = np.floor(pts / config.voxel).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)  # first beam per voxel
+    first.sort()
+    if first.size > config.max_points:
+        first = first[np.linspace(0, first.size - 1, config.max_points).astype(np.int64)]
+    w = np.ones(first.size) if weights is None else np.asarray(weights, dtype=np.float64)[idx[first]]
+    return pts[first], w, idx[first]
+
+
+class CorrelativeMatcher:
+    """Multi-resolution correlative matcher over a :class:`LikelihoodField`."""
+
+    def __init__(self, config: MatcherConfig = MatcherConfig()) -> None:
+        self.config = config
+
+    def _scores(self, field_arr: np.ndarray, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray,
+                xy0: np.ndarray, yaws: np.ndarray, tx: np.ndarray, ty: np.ndarray, margin: int,
+                bilinear: bool = False) -> np.ndarray:
+        """Scores (K, T) for yaws (K,) and integer cell translations (tx, ty) (T,) around xy0.
+
+        bilinear: interpolate the field between cell centres (smooth in sub-cell offsets; 4 lookups per
+        point) instead of taking the cell the point falls in."""
+        res = fld.resolution
+        h, wd = fld.shape
+        c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+        fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[0] - fld.origin[0])) / res
+        fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[1] - fld.origin[1])) / res
+        off = ty.astype(np.int64) * wd + tx.astype(np.int64)  # (T,)
+        wf = w.astype(np.float32)
+        if not bilinear:
+            # points off the crop are clamped into its floor border; margin >= largest translation
+            ix = np.clip(np.floor(fx).astype(np.int64), margin, wd - 1 - margin)
+            iy = np.clip(np.floor(fy).astype(np.int64), margin, h - 1 - margin)
+            base = iy * wd + ix  # (K, n)
+            vals = field_arr[base[:, None, :] + off[None, :, None]]  # (K, T, n)
+            return vals @ wf
+        gx, gy = fx - 0.5, fy - 0.5  # cell centres at integer coordinates
+        x0, y0 = np.floor(gx), np.floor(gy)
+        ax, ay = (gx - x0).astype(np.float32), (gy - y0).astype(np.float32)
+        ix = np.clip(x0.astype(np.int64), margin, wd - 2 - margin)
+        iy = np.clip(y0.astype(np.int64), margin, h - 2 - margin)
+        base = (iy * wd + ix)[:, None, :] + off[None, :, None]  # (K, T, n)
+        out = np.zeros((len(yaws), len(off)), dtype=np.float32)
+        for dflat, coef in ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (wd, (1 - ax) * ay), (wd + 1, ax * ay)):
+            vals = field_arr[base + dflat]  # (K, T, n)
+            out += np.matmul(vals, (coef * wf)[:, :, None])[..., 0]
+        return out
+
+    def match(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, prior_pose: np.ndarray,
+              prior_cov: np.ndarray) -> MatchResult | None:
+        """Match base-frame end points ``pts`` (n, 2) with weights ``w`` (n,) around ``prior_pose`` (map
+        frame). Returns None when the field is empty, there are too few points or the match is poor."""
+        cfg = self.config
+        if not fld.ready or pts.shape[0] < cfg.min_points or w.sum() <= 0:
+            return None
+        res = fld.resolution
+        f = fld.params.coarse_factor
+        prior_pose = np.asarray(prior_pose, dtype=np.float64)
+        sig_xy = float(np.sqrt(max(np.linalg.eigvalsh(prior_cov[:2, :2]).max(), 0.0)))
+        sig_yaw = float(np.sqrt(max(prior_cov[2, 2], 0.0)))
+        win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.xy_window_min, cfg.xy_window_max))
+        win_yaw = float(np.clip(cfg.window_sigmas * sig_yaw, cfg.yaw_window_min, cfg.yaw_window_max))
+        r = np.hypot(pts[:, 0], pts[:, 1])
+        r90 = float(np.percentile(r, 90))
+        step = float(np.clip(res / max(r90, 1e-3), cfg.yaw_step_min, cfg.yaw_step_max))
+
+        # coarse: block translations t (block covers [t, t+f) cells), yaw step f * step
+        nb = int(np.ceil(win_xy / (res * f)))
+        hf, hy = max(cfg.fine_half_cells, f), max(cfg.fine_half_yaw, f // 2 + 1)
+        margin = nb * f + 2 * hf + f  # largest translation (cells) a lookup can get
+        if 2 * margin > fld.params.pad:  # keep lookups of off-crop points inside the floor border
+            margin = fld.params.pad // 2
+            nb = max(1, (margin - 2 * hf - f) // f)
+        tb = np.arange(-nb, nb) * f
+        tx_c, ty_c = np.meshgrid(tb, tb, indexing="xy")
+        tx_c, ty_c = tx_c.ravel(), ty_c.ravel()
+        ky = int(np.ceil(win_yaw / (f * step)))
+        yaw_c = prior_pose[2] + np.arange(-ky, ky + 1) * f * step
+        xy0 = prior_pose[:2]
+        sc = self._scores(fld.coarse, fld, pts, w, xy0, yaw_c, tx_c, ty_c, margin)
+        n_poses = sc.size
+        order = np.argsort(sc, axis=None)[::-1]
+
+        # fine: first the window centred on the prior (so that a flat direction, e.g. along a corridor,
+        # gives back the prior's value and no bias), then the best coarse candidates while their upper
+        # bound beats the best fine score; another window replaces the prior's only if clearly better.
+        dx = np.arange(-hf, hf + 1)
+        ftx, fty = np.meshgrid(dx, dx, indexing="xy")
+        ftx, fty = ftx.ravel(), fty.ravel()
+        dk = np.arange(-hy, hy + 1)
+        beta = cfg.independent_points / float(w.sum())
+        starts = [(0, 0, prior_pose[2])]
+        for flat in order[: cfg.max_refine]:
+            k, t = np.unravel_index(flat, sc.shape)
+            starts.append((tx_c[t] + f // 2, ty_c[t] + f // 2, yaw_c[k], sc[k, t]))
+        best = None
+        for n_start, start in enumerate(starts):
+            cx, cy, cyaw = start[0], start[1], start[2]
+            if best is not None and start[3] <= best[0]:  # its upper bound cannot beat the best
+                break
+            for it in range(4):  # re-centre when the peak sits on the window's edge
+                yaws = cyaw + dk * step
+                sf = self._scores(fld.fine, fld, pts, w, xy0, yaws, cx + ftx, cy + fty, margin, cfg.bilinear)
+                n_poses += sf.size
+                kk, tt = np.unravel_index(np.argmax(sf), sf.shape)
+                edge = (abs(dk[kk]) == hy) or (abs(ftx[tt]) == hf) or (abs(fty[tt]) == hf)
+                cand = (float(sf[kk, tt]), sf, cx, cy, cyaw, yaws, edge, kk, tt)
+                if best is None or ((it > 0 and n_start == 0 or best[6]) and cand[0] > best[0]) or \
+                        cand[0] - best[0] > cfg.switch_margin:
+                    best = cand
+                if not edge or abs(cx + ftx[tt]) + hf > margin or abs(cy + fty[tt]) + hf > margin:
+                    break
+                cx, cy, cyaw = cx + ftx[tt], cy + fty[tt], yaws[kk]
+        smax, sf, cx, cy, cyaw, yaws, edge, kk, tt = best
+        quality = float(np.exp(smax / w.sum()) / (1.0 + fld.params.p_floor))
+        if quality < cfg.min_quality:
+            return None
+
+        pi = np.exp(beta * (sf - smax)).astype(np.float64)
+        pi /= pi.sum()
+        px = xy0[0] + (cx + ftx) * res  # (T,)
+        py = xy0[1] + (cy + fty) * res
+        dyaw = yaws - cyaw  # (K,)
+        pk, pt = pi.sum(axis=1), pi.sum(axis=0)
+        mx, my, mk = pt @ px, pt @ py, pk @ dyaw
+        ex, ey = px - mx, py - my
+        ek = dyaw - mk
+        cov = np.empty((3, 3))
+        cov[0, 0] = pt @ (ex * ex)
+        cov[1, 1] = pt @ (ey * ey)
+        cov[0, 1] = cov[1, 0] = pt @ (ex * ey)
+        cov[2, 2] = pk @ (ek * ek)
+        cov[0, 2] = cov[2, 0] = ek @ pi @ ex
+        cov[1, 2] = cov[2, 1] = ek @ pi @ ey
+        # sub-lattice peak: a parabola through the peak and its two neighbours on each axis (the scores are
+        # smooth thanks to the bilinear field). The mean of pi would snap to the lattice when pi is narrow
+        # and lean towards the window's centre when pi is truncated, so the vertex is the measurement on
+        # every axis where the scores curve down; the mean only on flat axes.
+        n1 = 2 * hf + 1
+        cube = sf.reshape(len(yaws), n1, n1)  # (yaw, y, x)
+        k0, j0, i0 = int(kk), int(tt) // n1, int(tt) % n1
+        sub = np.zeros(3)  # (x, y, yaw) offsets in lattice steps
+        curved = np.zeros(3, dtype=bool)
+        for axis, (idx, size) in enumerate(((i0, n1), (j0, n1), (k0, len(yaws)))):
+            if 0 < idx < size - 1:
+                sl = [k0, j0, i0]
+                vals = []
+                for d in (-1, 0, 1):
+                    sl2 = list(sl)
+                    sl2[2 - axis] = idx + d
+                    vals.append(float(cube[tuple(sl2)]))
+                den = vals[0] - 2 * vals[1] + vals[2]
+                if den < 0:
+                    curved[axis] = True
+                    sub[axis] = float(np.clip(0.5 * (vals[0] - vals[2]) / den, -0.5, 0.5))
+        peak = np.array([px[tt] + sub[0] * res, py[tt] + sub[1] * res, yaws[kk] + sub[2] * step])
+        mean = np.array([mx, my, cyaw + mk])
+        pose = np.where(curved, peak, mean)
+        q = cfg.subcell_floor
+        cov += np.diag([(q * res) ** 2, (q * res) ** 2, (q * step) ** 2])
+        return MatchResult(pose=pose, covariance=cov, peak_pose=peak, quality=quality,
+                           n_points=int(pts.shape[0]), n_poses=int(n_poses), edge=bool(edge))

@@ -1,0 +1,369 @@
+"""The on-robot application: one asyncio task per device, the processing stage, the recorder, map export.
+
+    laser task  --Scan-->  ProcessingStage (bounded queue, executor thread)  --ScanResult-->  recorder, pose
+    base task   --Odometry-->        |                                                       (for a driver)
+    export task: maps to out_dir every export_period s, /map and /glass/map every map_publish_period s
+    driver task (optional): route following (demo) or keyboard teleoperation; nothing else moves the robot
+
+Shutdown (Ctrl-C, SIGTERM, ``duration`` reached, or any task failing, e.g. a crash in processing): the
+robot is stopped and disabled first, then the laser stream stopped, the queued scans processed, the maps
+exported, the recording finished. :meth:`Runtime.run` then re-raises the failure, if any.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+
+from glassmap.types import Odometry, PoseEstimate
+from runtime.config import RuntimeConfig
+from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
+from runtime.pipeline import ProcessingStage, ScanResult
+from runtime.processor import MappingProcessor
+from runtime.recorder import McapRecorder
+from runtime.shutdown import StopRequest, handle_signals
+from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
+
+log = logging.getLogger(__name__)
+
+Driver = Callable[["Runtime"], Awaitable[None]]
+
+
+class RuntimeFailure(RuntimeError):
+    """The runtime stopped because a device or the processing failed (the message says which)."""
+
+
+@dataclass
+class LatencyLog:
+    """Per-scan figures: bytes-in -> maps-updated latency (s) and per-stage times (s)."""
+
+    latency: list[float] = field(default_factory=list)
+    stages: dict[str, list[float]] = field(default_factory=dict)
+
+    def add(self, r: ScanResult) -> None:
+        if r.bytes_in_time is not None:
+            self.latency.append(r.done_time - r.bytes_in_time)
+        for k, v in r.timings.items():
+            self.stages.setdefault(k, []).append(v)
+
+
+@dataclass
+class RunSummary:
+    """What a run did (counters, files written)."""
+
+    scans_received: int = 0
+    scans_processed: int = 0
+    dropped_overflow: int = 0
+    dropped_stale: int = 0
+    odometry: int = 0
+    laser_reconnects: int = 0
+    base_reconnects: int = 0
+    recording: str = ""
+    recorded_messages: int = 0
+    recorder_dropped: int = 0
+    exports: dict[str, str] = field(default_factory=dict)
+    stop_reason: str = ""
+    duration: float = 0.0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class Runtime:
+    """One run of the robot program. Build it, then ``await runtime.run()``."""
+
+    def __init__(self, config: RuntimeConfig, *, processor: MappingProcessor | None = None,
+                 hokuyo_options: dict | None = None, pioneer_options: dict | None = None,
+                 driver: Driver | None = None, stop: StopRequest | None = None,
+                 on_result: Callable[[ScanResult], None] | None = None, export_stem: str = "glass_map") -> None:
+        config.validate()
+        self.config = config
+        self.processor = processor or MappingProcessor(config.mapping)
+        self.hokuyo_options = dict(hokuyo_options or {})
+        self.pioneer_options = dict(pioneer_options or {})
+        self.driver = driver
+        self.stop = stop
+        self.on_result_cb = on_result
+        self.export_stem = export_stem
+        self.time_base = TimeBase.now()
+        self.latest: ScanResult | None = None
+        self.latest_odom: Odometry | None = None
+        self.laser = None
+        self.base = None
+        self.latency = LatencyLog()
+        self.summary = RunSummary()
+        self.stage: ProcessingStage | None = None
+        self.recorder: McapRecorder | None = None
+        self.sink: RecordingSink | None = None
+        self._rx_time: dict[str, float] = {}
+        self._pose_event = asyncio.Event()
+
+    # -- helpers for drivers (route following, teleop) ---------------------------------------------------
+    @property
+    def pose(self) -> PoseEstimate | None:
+        """The latest pose estimate of the base (map frame), or None before the first processed scan."""
+        return self.latest.estimate if self.latest is not None else None
+
+    async def wait_pose(self) -> PoseEstimate:
+        """Wait for the next processed scan's pose."""
+        self._pose_event.clear()
+        await self._pose_event.wait()
+        return self.pose
+
+    async def command_velocity(self, v: float, omega: float) -> None:
+        """Send a velocity command (m/s, rad/s) to the base and record it on /cmd_vel."""
+        if self.base is None:
+            raise RuntimeFailure("no base connected: cannot drive")
+        await self.base.set_velocity(v, omega)
+        if self.sink is not None:
+            self.sink.cmd_vel(time.monotonic(), v, omega)
+
+    # -- the run ----------------------------------------------------------------------------------------
+    async def run(self, duration: float | None = None, duration_label: str | None = None) -> RunSummary:
+        """Run until ``duration`` seconds (wall clock) have passed, a stop is requested, or a task fails.
+        ``duration_label`` names the limit in the stop reason (default "<duration> s")."""
+        cfg = self.config
+        stop = self.stop or StopRequest()
+        self.stop = stop
+        t_start = time.monotonic()
+        rosout = None
+        if cfg.output.record:
+            meta = recording_metadata(self.time_base, laser_url=cfg.resolved_laser_url(),
+                                      base_url=cfg.resolved_base_url(),
+                                      mapping=json.dumps(dataclasses.asdict(cfg.mapping)))
+            self.recorder = McapRecorder(cfg.output.record, chunk_size=cfg.output.chunk_size,
+                                         chunk_interval=cfg.output.chunk_interval,
+                                         compression=cfg.output.compression, metadata=meta)
+            self.sink = RecordingSink(self.recorder, self.time_base, laser_frame=cfg.laser.laser_frame_id,
+                                      base_frame=cfg.base.base_link_frame, odom_frame=cfg.base.odom_frame,
+                                      map_frame=cfg.mapping.map_frame, record_raw=cfg.output.record_raw)
+            rosout = RosoutHandler(self.recorder, self.time_base)
+            log_state = _record_info_logs(rosout)
+            self.summary.recording = str(cfg.output.record)
+        self.stage = ProcessingStage(self.processor, queue_size=cfg.pipeline.queue_size,
+                                     max_scan_age=cfg.pipeline.max_scan_age, odom_buffer=cfg.pipeline.odom_buffer,
+                                     on_result=self._on_result)
+        failure: BaseException | None = None
+        try:
+            with handle_signals(stop):
+                await self._connect()
+                tasks = [asyncio.create_task(self._laser_task(), name="laser"),
+                         asyncio.create_task(self.stage.run(), name="processing"),
+                         asyncio.create_task(self._export_task(), name="export")]
+                if self.base is not None:
+                    tasks.append(asyncio.create_task(self._base_task(), name="base"))
+                if self.driver is not None:
+                    tasks.append(asyncio.create_task(self._driver_task(), name="driver"))
+                stopper = asyncio.create_task(stop.wait(), name="stop")
+                waiters = [*tasks, stopper]
+                try:
+                    done, _ = await asyncio.wait(waiters, timeout=duration, return_when=asyncio.FIRST_COMPLETED)
+                    if not done:
+                        stop.set(f"duration {duration_label or f'{duration:g} s'} reached")
+                    for t in done:
+                        if t is stopper:
+                            continue
+                        if t.exception() is not None:
+                            failure = t.exception()
+                            stop.set(f"{t.get_name()} failed: {failure}")
+                        elif t.get_name() == "driver":
+                            stop.set("driver finished (route done or teleop quit)")
+                        else:
+                            stop.set(f"{t.get_name()} ended")
+                finally:
+                    await self._shutdown([t for t in tasks if t.get_name() != "processing"], stopper)
+                    proc = next(t for t in tasks if t.get_name() == "processing")
+                    await self._finish_processing(proc)
+        finally:
+            await self._close_devices()
+            if self.stage is not None:
+                self.stage.shutdown()
+            self.summary.stop_reason = stop.reason
+            self.summary.duration = time.monotonic() - t_start
+            self._fill_summary()
+            if self.sink is not None:
+                self.sink.summary(time.monotonic(), self.summary.as_dict())
+            if rosout is not None:
+                _restore_logs(rosout, log_state)
+            if self.recorder is not None:
+                self.recorder.close()
+                self.summary.recorded_messages = self.recorder.stats.total_written
+                self.summary.recorder_dropped = self.recorder.stats.total_dropped
+        if failure is not None:
+            raise RuntimeFailure(f"run stopped: {stop.reason}") from failure
+        return self.summary
+
+    async def _connect(self) -> None:
+        from drivers.hokuyo.client import HokuyoClient
+        from drivers.pioneer.client import PioneerClient
+
+        cfg = self.config
+        laser_url = cfg.resolved_laser_url()
+        taps = [self._rx_tap("laser")]
+        if self.sink is not None:
+            taps.append(self.sink.tap("laser", laser_url))
+        opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, **self.hokuyo_options}
+        self.laser = await HokuyoClient.connect(laser_url, taps=taps, **opts)
+        log.info("laser connected: %s", laser_url)
+        base_url = cfg.resolved_base_url()
+        if base_url.lower() not in ("", "none"):
+            btaps = [self.sink.tap("base", base_url)] if self.sink is not None else []
+            popts = {"max_v": cfg.base.max_v, "max_omega": cfg.base.max_omega, **self.pioneer_options}
+            try:
+                self.base = await PioneerClient.connect(base_url, enable_motors=cfg.base.enable_motors,
+                                                        taps=btaps, **popts)
+            except BaseException:
+                await self.laser.close()
+                raise
+            log.info("base connected: %s (motors %s)", base_url, "enabled" if cfg.base.enable_motors else "disabled")
+
+    def _rx_tap(self, device: str):
+        def tap(direction: str, host_time: float, data: bytes) -> None:
+            if direction == "rx":
+                self._rx_time[device] = host_time
+        return tap
+
+    async def _laser_task(self) -> None:
+        async for scan in self.laser.scans():
+            scan = as_recorded_scan(scan, self.time_base)
+            if self.sink is not None:
+                self.sink.scan(scan)
+            self.stage.submit_scan(scan, self._rx_time.get("laser"))
+
+    async def _base_task(self) -> None:
+        async for odom in self.base.odometry():
+            odom, msg = as_recorded_odometry(odom, self.time_base, self.config.base.odom_frame,
+                                             self.config.base.base_link_frame)
+            self.latest_odom = odom
+            if self.sink is not None:
+                self.sink.odometry(odom, msg)
+            self.stage.submit_odometry(odom)
+        if not self.stop.is_set():
+            raise RuntimeFailure("the base link closed")
+
+    async def _driver_task(self) -> None:
+        await self.driver(self)
+
+    def _on_result(self, r: ScanResult) -> None:
+        self.latest = r
+        self.latency.add(r)
+        if self.sink is not None:
+            self.sink.result(r)
+        if self.on_result_cb is not None:
+            self.on_result_cb(r)
+        self._pose_event.set()
+
+    async def _export_task(self) -> None:
+        out = self.config.output
+        next_export = time.monotonic() + out.export_period if out.export_period > 0 else math.inf
+        next_pub = time.monotonic() + out.map_publish_period if out.map_publish_period > 0 else math.inf
+        while True:
+            await asyncio.sleep(max(0.05, min(next_export, next_pub) - time.monotonic()))
+            now = time.monotonic()
+            if now >= next_pub and self.sink is not None and self.latest is not None:
+                snap = await self.stage.call(self.processor.snapshot)
+                self.sink.maps(time.monotonic(), snap.occupancy_p, snap.confidence, snap.origin, snap.resolution)
+                next_pub = now + out.map_publish_period
+            elif now >= next_pub:
+                next_pub = now + out.map_publish_period
+            if now >= next_export and self.latest is not None:
+                try:
+                    self.summary.exports = await self.stage.call(self.processor.export, out.out_dir,
+                                                                 self.export_stem)
+                    log.info("maps exported to %s", out.out_dir)
+                except OSError as exc:  # keep mapping (and the robot safe); say why the files are not there
+                    log.error("map export to %s failed: %s", out.out_dir, exc)
+                next_export = now + out.export_period
+
+    async def _shutdown(self, tasks: list[asyncio.Task], stopper: asyncio.Task) -> None:
+        """Cancel the driver (no further commands), stop the robot, then cancel the device and export tasks."""
+        for t in tasks:
+            if t.get_name() == "driver":
+                t.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await t
+        if self.base is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.base.stop(), 1.0)
+        for t in [*tasks, stopper]:
+            t.cancel()
+        for t in [*tasks, stopper]:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+
+    async def _finish_processing(self, proc: asyncio.Task) -> None:
+        """Process what is queued (bounded wait), then export the maps one last time."""
+        self.stage.close()
+        try:
+            await asyncio.wait_for(asyncio.shield(proc), 5.0)
+        except asyncio.TimeoutError:
+            proc.cancel()
+        except Exception:
+            pass  # reported by run() already if it was the failure
+        if not proc.done():
+            proc.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await proc
+        if self.latest is not None:
+            try:
+                out = self.config.output
+                snap = await self.stage.call(self.processor.snapshot)
+                if self.sink is not None:
+                    self.sink.maps(time.monotonic(), snap.occupancy_p, snap.confidence, snap.origin,
+                                   snap.resolution)
+                self.summary.exports = await self.stage.call(self.processor.export, out.out_dir, self.export_stem)
+            except Exception as exc:
+                log.error("final map export failed: %s", exc)
+
+    async def _close_devices(self) -> None:
+        """Robot stopped, motors disabled, CLOSE (PioneerClient.close); laser QT (HokuyoClient.close)."""
+        if self.base is not None:
+            self.summary.base_reconnects = getattr(self.base.stats, "reconnects", 0)
+            try:
+                await asyncio.wait_for(self.base.close(), 3.0)
+            except Exception as exc:
+                log.error("closing the base failed: %s", exc)
+        if self.laser is not None:
+            self.summary.laser_reconnects = getattr(self.laser.stats, "reconnects", 0)
+            try:
+                await asyncio.wait_for(self.laser.close(), 3.0)
+            except Exception as exc:
+                log.error("closing the laser failed: %s", exc)
+
+    def _fill_summary(self) -> None:
+        s = self.summary
+        if self.stage is not None:
+            st = self.stage.stats
+            s.scans_received, s.scans_processed = st.scans_received, st.scans_processed
+            s.dropped_overflow, s.dropped_stale = st.dropped_overflow, st.dropped_stale
+            s.odometry = st.odometry_received
+
+
+def _record_info_logs(handler: logging.Handler):
+    """Attach ``handler`` (/rosout) to the root logger and let INFO records reach it, without making the
+    console more verbose (console handlers keep the level the root logger had)."""
+    root = logging.getLogger()
+    state = (root.level, [(h, h.level) for h in root.handlers])
+    console_level = root.level or logging.WARNING
+    for h in root.handlers:
+        if h.level == logging.NOTSET:
+            h.setLevel(console_level)
+    root.addHandler(handler)
+    root.setLevel(min(console_level, logging.INFO))
+    return state
+
+
+def _restore_logs(handler: logging.Handler, state) -> None:
+    root = logging.getLogger()
+    root.removeHandler(handler)
+    level, handlers = state
+    root.setLevel(level)
+    for h, lvl in handlers:
+        h.setLevel(lvl)

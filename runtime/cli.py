@@ -1,0 +1,225 @@
+"""``glassmap run | demo | replay | bench | recover``: the runtime's command-line tools."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import math
+import sys
+
+from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run", help="run on the robot: laser + base -> maps online, MCAP recording",
+        description="Connect to the Hokuyo and the Pioneer, estimate the pose, build the occupancy and glass "
+        "confidence maps online and write them (PNG, .npy, PGM + YAML) every output.export_period s and at "
+        "exit. The robot never moves unless --teleop is given (keyboard). Ctrl-C or SIGTERM stops cleanly: "
+        "robot stopped and disabled, laser stopped, recording finished.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--laser", metavar="URL", help="laser URL (default from [laser]: tcp://192.168.0.10:10940)")
+    p.add_argument("--base", metavar="URL", help="base URL (default from [base]: serial:///dev/ttyUSB0?baud=9600; "
+                   "'none' = no base: mapping from scan matching alone)")
+    p.add_argument("--record", metavar="FILE", help="record everything to this MCAP file (= output.record)")
+    p.add_argument("--out", metavar="DIR", help="map output directory (= output.out_dir)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--teleop", action="store_true", help="drive with the keyboard (enables the motors)")
+    add_config_flags(p)
+    p.set_defaults(func=cmd_run)
+
+    d = sub.add_parser(
+        "demo", help="the full runtime against emulated hardware in the simulated office",
+        description="Start an emulated Hokuyo (loopback TCP) and an emulated Pioneer (pseudo-terminal) driven "
+        "by the simulator, connect the runtime to them as to hardware, drive the world's route with velocity "
+        "commands, build the maps online, then write the glass confidence map PNG and the MCAP recording and "
+        "print the classification error against the blueprint.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    d.add_argument("--world", default="office", help="simulator world (office, glass-corridor, room, lobby, or a file)")
+    d.add_argument("--route", default=None, help="route of the world (default: its default route)")
+    d.add_argument("--speed", type=float, default=2.0, help="run the emulated devices this many times faster "
+                   "than real time (scans come at 40 x speed Hz; scans the processing cannot keep up with are "
+                   "dropped and counted)")
+    d.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S emulated seconds (default: when the route is done)")
+    d.add_argument("--out", default="out/demo", help="output directory (maps, demo.mcap)")
+    d.add_argument("--no-record", action="store_true", help="do not write the MCAP recording")
+    d.add_argument("--seed", type=int, default=0, help="seed of the simulated robot and laser noise")
+    d.add_argument("--registration", choices=("direct", "robust"), default=None,
+                   help="glass registration (default: mapping.registration, robust)")
+    d.add_argument("--window", type=int, choices=(3, 5), default=None,
+                   help="robust registration window k (default: mapping.window, 3)")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_flags(d)
+    d.set_defaults(func=cmd_demo)
+
+    r = sub.add_parser(
+        "replay", help="re-run the mapping on recordings or ROS bags, as fast as possible",
+        description="Re-run pose estimation and glass mapping on a glassmap MCAP recording (from the decoded "
+        "messages or from the raw device bytes through the drivers' decoders), or on ROS 1 (.bag) / ROS 2 "
+        "(directory, .mcap, .db3) bags with sensor_msgs/LaserScan plus nav_msgs/Odometry or /tf. Settings "
+        "default to those the recording was made with; change them with the flags (e.g. "
+        "--mapping.registration direct). Several files run in parallel (processes, or a Dask cluster).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    r.add_argument("files", nargs="+", metavar="FILE", help="recordings or bags")
+    r.add_argument("--source", choices=("messages", "raw"), default="messages",
+                   help="decoded /scan + /odom messages, or the raw device bytes (glassmap recordings only)")
+    r.add_argument("--out", default="out/replay", help="output directory (one map set per file)")
+    r.add_argument("--all-scans", action="store_true", help="process every scan, also those the live run "
+                   "dropped (default: only the scans the live run processed, so the maps can match)")
+    r.add_argument("--world", default=None, help="score the map against this simulator world's blueprint")
+    r.add_argument("--limit", type=int, default=None, metavar="N", help="stop after N scans (a quick look)")
+    r.add_argument("--workers", type=int, default=None, help="parallel processes for several files "
+                   "(default: one per core)")
+    r.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, "
+                   "e.g. tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_flags(r)
+    r.set_defaults(func=cmd_replay)
+
+    b = sub.add_parser(
+        "bench", help="runtime figures: per-stage time, replay throughput, latency p50/p99, peak memory",
+        description="Record a live run against the emulated devices at real time (40 Hz), measuring the "
+        "latency from the scan's bytes arriving to the maps updated; then replay the recording as fast as "
+        "possible from the messages and from the raw bytes. Prints per-stage time per scan, throughput "
+        "(scans/s and x real time), latency p50/p99 and peak memory.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    b.add_argument("--world", default="office", help="simulator world")
+    b.add_argument("--duration", type=float, default=20.0, help="emulated seconds of the live run")
+    b.add_argument("--recording", default=None, help="replay this recording instead of recording a new one "
+                   "(no live latency figures then)")
+    b.add_argument("--out", default="out/bench", help="output directory")
+    b.set_defaults(func=cmd_bench)
+
+    c = sub.add_parser(
+        "recover", help="repair an MCAP recording cut short by a crash (adds index and footer)",
+        description="A recording interrupted by a crash or SIGKILL holds every completed chunk but no "
+        "footer; this rewrites it into a complete file that Foxglove and rosbags open.")
+    c.add_argument("src", help="the cut-short .mcap")
+    c.add_argument("dst", help="the repaired .mcap to write")
+    c.set_defaults(func=cmd_recover)
+
+
+def _config(args, base: RuntimeConfig | None = None) -> RuntimeConfig:
+    try:
+        return config_from_args(args, base)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def cmd_run(args) -> int:
+    from drivers.errors import DriverError
+    from runtime.app import Runtime, RuntimeFailure
+
+    cfg = _config(args)
+    if args.laser:
+        cfg.laser_url = args.laser
+    if args.base:
+        cfg.base_url = "none" if args.base.lower() == "none" else args.base
+    if args.record:
+        cfg.output.record = args.record
+    if args.out:
+        cfg.output.out_dir = args.out
+    driver = None
+    if args.teleop:
+        from runtime.teleop import keyboard_driver
+
+        cfg.base.enable_motors = True
+        driver = keyboard_driver(cfg.base.max_v, cfg.base.max_omega)
+    rt = Runtime(cfg, driver=driver)
+    try:
+        summary = asyncio.run(rt.run(duration=args.duration))
+    except (DriverError, RuntimeFailure, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        if exc.__cause__ is not None:
+            print(f"  cause: {exc.__cause__}", file=sys.stderr)
+        return 1
+    print(f"stopped: {summary.stop_reason}; scans {summary.scans_processed}/{summary.scans_received} processed, "
+          f"dropped {summary.dropped_overflow} (queue full) + {summary.dropped_stale} (stale)")
+    for k, v in summary.exports.items():
+        print(f"map {k}: {v}")
+    if summary.recording:
+        print(f"recording: {summary.recording} ({summary.recorded_messages} messages)")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from runtime.demo import DemoOptions, format_result, run_demo
+
+    cfg = _config(args)
+    opts = DemoOptions(world=args.world, route=args.route, speed=args.speed, duration=args.duration,
+                       out_dir=args.out, record=not args.no_record, seed=args.seed,
+                       registration=args.registration, window=args.window, progress=not args.no_progress,
+                       config=cfg)
+    if not (opts.speed > 0 and math.isfinite(opts.speed)):
+        print("error: --speed must be > 0", file=sys.stderr)
+        return 2
+    from drivers.errors import DriverError
+    from runtime.app import RuntimeFailure
+
+    try:
+        res = asyncio.run(run_demo(opts))
+    except (ValueError, DriverError, RuntimeFailure, RuntimeError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        if exc.__cause__ is not None:
+            print(f"  cause: {exc.__cause__}", file=sys.stderr)
+        return 1
+    print(format_result(res))
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from runtime.readers import ReplayInputError
+    from runtime.replay import ReplayJob, recorded_config, replay_file, replay_many, summarize
+
+    jobs = []
+    for i, f in enumerate(args.files):
+        cfg = _config(args, base=recorded_config(f))
+        stem = "glass_map" if len(args.files) == 1 else f"glass_map_{i:03d}"
+        jobs.append(ReplayJob(path=f, config=cfg, source=args.source, out_dir=args.out, stem=stem,
+                              world=args.world))
+    if len(jobs) == 1 and not args.dask:
+        j = jobs[0]
+        try:
+            res = replay_file(j.path, j.config, source=j.source, out_dir=j.out_dir, stem=j.stem,
+                              progress=not args.no_progress, world=j.world, as_recorded=not args.all_scans,
+                              limit=args.limit)
+        except (ReplayInputError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        print(summarize([res]))
+        if res.skipped:
+            print(f"{res.skipped} scans skipped: the live run dropped them (--all-scans processes them too)")
+        for k, v in res.exports.items():
+            print(f"map {k}: {v}")
+        return 0
+    results = replay_many(jobs, workers=args.workers, dask_address=args.dask, progress=not args.no_progress)
+    ok = [r for r in results if not isinstance(r, BaseException)]
+    print(summarize(ok))
+    failed = 0
+    for j, r in zip(jobs, results):
+        if isinstance(r, BaseException):
+            failed += 1
+            print(f"{j.path}: failed: {r}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def cmd_bench(args) -> int:
+    from runtime.bench import run_bench
+
+    print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out))
+    return 0
+
+
+def cmd_recover(args) -> int:
+    from runtime.recorder import recover_mcap
+
+    rep = recover_mcap(args.src, args.dst)
+    print(f"{args.dst}: {rep.messages} messages recovered")
+    for t, n in sorted(rep.topics.items()):
+        print(f"  {t}: {n}")
+    return 0

@@ -1,0 +1,247 @@
+"""Runtime settings: one TOML file, every setting also a command-line flag.
+
+TOML layout (all keys optional; defaults below)::
+
+    [laser]                     # names of the ROS urg_node driver
+    ip_address = "192.168.0.10"
+    ip_port = 10940
+    serial_port = ""            # set for USB models (e.g. /dev/ttyACM0); wins over ip_address
+    laser_frame_id = "laser"
+    [base]                      # names of the ROS RosAria driver
+    port = "/dev/ttyUSB0"       # serial device, or HOST:PORT for a TCP simulator
+    baud = 9600
+    ...
+
+Each key ``section.name`` is also the flag ``--section.name VALUE`` (e.g. ``--laser.ip_address 10.0.0.5``);
+flags win over the file, the file wins over the defaults. ``--laser URL`` / ``--base URL`` (full transport
+URLs) win over the address keys.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A configuration file or flag is wrong; the message names the file, the key and the problem."""
+
+
+def _f(default: Any, help: str) -> Any:
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass
+class LaserConfig:
+    """Hokuyo settings (ROS urg_node parameter names)."""
+
+    ip_address: str = _f("192.168.0.10", "laser IP address (UTM-30LX-EW default 192.168.0.10)")
+    ip_port: int = _f(10940, "laser TCP port")
+    serial_port: str = _f("", "laser serial device for USB models (e.g. /dev/ttyACM0); wins over ip_address")
+    serial_baud: int = _f(115200, "laser serial baud rate")
+    laser_frame_id: str = _f("laser", "frame id of the laser in the recording")
+    cluster: int = _f(1, "SCIP cluster count (adjacent steps merged)")
+    skip: int = _f(0, "SCIP skip count (scans skipped between two sent)")
+
+    def url(self) -> str:
+        if self.serial_port:
+            return f"serial://{self.serial_port}?baud={self.serial_baud}"
+        return f"tcp://{self.ip_address}:{self.ip_port}"
+
+
+@dataclass
+class BaseConfig:
+    """Pioneer settings (ROS RosAria parameter names where they exist)."""
+
+    port: str = _f("/dev/ttyUSB0", "base serial device, or HOST:PORT of a TCP simulator (RosAria 'port')")
+    baud: int = _f(9600, "base serial baud rate at connection (the P3-DX powers up at 9600)")
+    odom_frame: str = _f("odom", "odometry frame id")
+    base_link_frame: str = _f("base_link", "robot base frame id")
+    max_v: float = _f(0.5, "speed limit for commanded forward velocity (m/s)")
+    max_omega: float = _f(1.0472, "speed limit for commanded rotation (rad/s)")
+    enable_motors: bool = _f(False, "enable the motors at connection (needed to drive; off = never moves)")
+
+    def url(self) -> str:
+        if self.port.startswith("/"):
+            return f"serial://{self.port}?baud={self.baud}"
+        host, sep, port = self.port.rpartition(":")
+        if not sep or not port.isdigit():
+            raise ConfigError(f"base.port {self.port!r}: expected a device path (/dev/ttyUSB0) or HOST:PORT")
+        return f"tcp://{host}:{port}"
+
+
+@dataclass
+class MappingConfig:
+    """Glass mapping and pose estimation settings."""
+
+    map_frame: str = _f("map", "map frame id")
+    registration: str = _f("robust", "glass registration: direct | robust")
+    window: int = _f(3, "robust registration window k (3 or 5)")
+    aggregation: str = _f("scan", "evidence aggregation per cell: scan | beam")
+    decay_reference: str = _f("cell", "eq. 6 decay from the nearest occupied 'cell' or the beam 'endpoint'")
+    occupancy_update: str = _f("mapper", "who integrates each scan into the occupancy grid at the corrected "
+                                         "pose: 'mapper' (glass-aware: cells hit by glass-classified beams "
+                                         "are kept occupied and not cleared) or 'estimator' (plain)")
+    glass_weighting: bool = _f(False, "scan matching down-weights beams ending on likely glass (the glass map)")
+    max_free_range: float = _f(20.0, "a beam clears free space at most this far (m); glass lets beams through")
+    classifier_weights: str = _f("", "classifier weights stem (path without .pt/.json); '' = the shipped weights")
+    laser_x: float = _f(0.1, "laser mount in the base frame: x (m, forward of the axle)")
+    laser_y: float = _f(0.0, "laser mount in the base frame: y (m, left)")
+    laser_yaw: float = _f(0.0, "laser mount in the base frame: yaw (rad)")
+    initial_x: float = _f(0.0, "initial pose of the base in the map frame: x (m)")
+    initial_y: float = _f(0.0, "initial pose of the base in the map frame: y (m)")
+    initial_yaw: float = _f(0.0, "initial pose of the base in the map frame: yaw (rad)")
+
+
+@dataclass
+class PipelineConfig:
+    """Processing stage settings."""
+
+    queue_size: int = _f(4, "scans waiting for processing; when full the oldest is dropped (and counted)")
+    max_scan_age: float = _f(0.5, "a scan older than this (s, host clock) when processing starts is dropped "
+                                  "(and counted) as stale")
+    odom_buffer: int = _f(400, "odometry messages kept for interpolation")
+
+
+@dataclass
+class OutputConfig:
+    """Files written by the runtime."""
+
+    out_dir: str = _f("out/run", "directory for maps (PNG, .npy, PGM + YAML)")
+    export_period: float = _f(10.0, "seconds between periodic map exports (0 = only at exit)")
+    map_publish_period: float = _f(2.0, "seconds between /map and /glass/map messages in the recording")
+    record: str = _f("", "MCAP file to record into ('' = no recording)")
+    record_raw: bool = _f(True, "record the raw device bytes (needed to replay through the drivers)")
+    chunk_size: int = _f(512 * 1024, "MCAP chunk size (bytes): at most this much is lost on a crash")
+    chunk_interval: float = _f(1.0, "MCAP chunk interval (s): chunks are closed at least this often")
+    compression: str = _f("zstd", "MCAP chunk compression: zstd | lz4 | none")
+
+
+@dataclass
+class RuntimeConfig:
+    laser: LaserConfig = field(default_factory=LaserConfig)
+    base: BaseConfig = field(default_factory=BaseConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    laser_url: str = ""
+    base_url: str = ""
+
+    def resolved_laser_url(self) -> str:
+        return self.laser_url or self.laser.url()
+
+    def resolved_base_url(self) -> str:
+        return self.base_url or self.base.url()
+
+    def validate(self) -> None:
+        m = self.mapping
+        if m.registration not in ("direct", "robust"):
+            raise ConfigError(f"mapping.registration must be direct or robust, got {m.registration!r}")
+        if m.window not in (3, 5):
+            raise ConfigError(f"mapping.window must be 3 or 5, got {m.window}")
+        if m.aggregation not in ("scan", "beam"):
+            raise ConfigError(f"mapping.aggregation must be scan or beam, got {m.aggregation!r}")
+        if m.decay_reference not in ("cell", "endpoint"):
+            raise ConfigError(f"mapping.decay_reference must be cell or endpoint, got {m.decay_reference!r}")
+        if m.occupancy_update not in ("mapper", "estimator"):
+            raise ConfigError(f"mapping.occupancy_update must be mapper or estimator, got {m.occupancy_update!r}")
+        if m.max_free_range <= 0:
+            raise ConfigError(f"mapping.max_free_range must be > 0 m, got {m.max_free_range}")
+        if self.pipeline.queue_size < 1:
+            raise ConfigError("pipeline.queue_size must be >= 1")
+        if self.pipeline.max_scan_age <= 0:
+            raise ConfigError("pipeline.max_scan_age must be > 0 s")
+        if self.output.compression not in ("zstd", "lz4", "none"):
+            raise ConfigError(f"output.compression must be zstd, lz4 or none, got {self.output.compression!r}")
+
+
+SECTIONS = ("laser", "base", "mapping", "pipeline", "output")
+
+
+def _coerce(value: Any, typ: type, where: str) -> Any:
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+            return value.lower() in ("1", "true", "yes", "on")
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    if typ is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if typ is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if typ is str and isinstance(value, str):
+        return value
+    if isinstance(value, str):
+        try:
+            return typ(value)
+        except ValueError:
+            pass
+    raise ConfigError(f"{where}: expected {typ.__name__}, got {value!r}")
+
+
+def _field_types(cls) -> dict[str, type]:
+    hints = {"str": str, "int": int, "float": float, "bool": bool}
+    return {f.name: hints[f.type] if isinstance(f.type, str) else f.type for f in dataclasses.fields(cls)}
+
+
+def load_config(path: str | Path | None, base: RuntimeConfig | None = None) -> RuntimeConfig:
+    """Read a TOML file over the defaults (or over ``base``). Unknown sections or keys are errors."""
+    cfg = base or RuntimeConfig()
+    if path is None:
+        return cfg
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    for section, values in data.items():
+        if section not in SECTIONS:
+            raise ConfigError(f"{path}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{path}: {section} must be a table [{section}]")
+        obj = getattr(cfg, section)
+        types = _field_types(type(obj))
+        for key, value in values.items():
+            if key not in types:
+                raise ConfigError(f"{path}: unknown key {section}.{key} (known: {', '.join(types)})")
+            setattr(obj, key, _coerce(value, types[key], f"{path}: {section}.{key}"))
+    try:
+        cfg.validate()
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return cfg
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """Add ``--config FILE`` and one ``--section.key`` flag per setting (default: unset)."""
+    parser.add_argument("--config", metavar="FILE", help="TOML settings file (flags win over it)")
+    defaults = RuntimeConfig()
+    for section in SECTIONS:
+        obj = getattr(defaults, section)
+        group = parser.add_argument_group(f"[{section}] settings ({type(obj).__doc__.strip()})")
+        for f in dataclasses.fields(obj):
+            typ = _field_types(type(obj))[f.name]
+            default = getattr(obj, f.name)
+            group.add_argument(f"--{section}.{f.name}", dest=f"cfg__{section}__{f.name}", default=None,
+                               metavar="BOOL" if typ is bool else typ.__name__.upper(),
+                               help=f"{f.metadata.get('help', '')} (default: {default!r})")
+
+
+def config_from_args(args: argparse.Namespace, base: RuntimeConfig | None = None) -> RuntimeConfig:
+    """Defaults <- ``base`` <- ``--config`` file <- ``--section.key`` flags."""
+    cfg = load_config(getattr(args, "config", None), base)
+    for section in SECTIONS:
+        obj = getattr(cfg, section)
+        types = _field_types(type(obj))
+        for name, typ in types.items():
+            value = getattr(args, f"cfg__{section}__{name}", None)
+            if value is not None:
+                setattr(obj, name, _coerce(value, typ, f"--{section}.{name}"))
+    cfg.validate()
+    return cfg

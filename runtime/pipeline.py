@@ -1,0 +1,166 @@
+"""The processing stage: a bounded scan queue in front of a single-thread executor.
+
+Scans come from the laser task (:meth:`ProcessingStage.submit_scan`, never blocks), odometry from the base
+task (:meth:`ProcessingStage.submit_odometry`). Each scan is processed with the odometry that arrived
+before it (arrival order, not processing time), so a replay of the recording in file order feeds the
+processor exactly what the live run fed it; the odometry of a dropped scan goes to the next one. One worker runs the heavy per-scan work (pose estimation,
+glass path) in an executor thread, so the event loop keeps serving the devices. Scans are never dropped
+silently: when the queue is full the oldest waiting scan is dropped (``dropped_overflow``); a scan older than
+``max_scan_age`` seconds (host clock) when its turn comes is dropped (``dropped_stale``). An exception in the
+processor ends :meth:`ProcessingStage.run` with :class:`ProcessingError` (the runtime then stops the robot).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from glassmap.types import Odometry, PoseEstimate, Scan
+
+log = logging.getLogger(__name__)
+
+
+class ProcessingError(RuntimeError):
+    """The per-scan processing failed; the message names the scan and the cause."""
+
+
+@dataclass
+class ScanResult:
+    """What the processing of one scan produced (map frame; times in host seconds)."""
+
+    scan: Scan
+    estimate: PoseEstimate | None
+    laser_pose: np.ndarray | None  # (3,) laser pose in the map frame
+    p_glass: np.ndarray | None  # (n,) per-beam p(glass), NaN where no angle
+    odom: Odometry | None = None  # the latest odometry at or before the scan (for map -> odom)
+    timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
+    bytes_in_time: float | None = None  # host time the scan's last bytes arrived
+    done_time: float = 0.0  # host time the maps were updated
+
+
+class ScanProcessor(Protocol):
+    """The heavy work for one scan, run in the executor thread (one at a time)."""
+
+    def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult: ...
+
+
+@dataclass
+class StageStats:
+    scans_received: int = 0
+    scans_processed: int = 0
+    dropped_overflow: int = 0
+    dropped_stale: int = 0
+    odometry_received: int = 0
+    odometry_dropped: int = 0
+    busy_time: float = 0.0  # seconds spent in the processor
+
+    def summary(self) -> str:
+        return (f"scans received {self.scans_received}, processed {self.scans_processed}, "
+                f"dropped: queue full {self.dropped_overflow}, stale {self.dropped_stale}")
+
+
+class ProcessingStage:
+    """Bounded queue + executor between the device tasks and the processor."""
+
+    def __init__(self, processor: ScanProcessor, *, queue_size: int = 4, max_scan_age: float = 0.5,
+                 odom_buffer: int = 400, on_result: Callable[[ScanResult], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 executor: concurrent.futures.Executor | None = None) -> None:
+        if queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        if max_scan_age <= 0:
+            raise ValueError("max_scan_age must be > 0")
+        self.processor = processor
+        self.queue_size = queue_size
+        self.max_scan_age = max_scan_age
+        self.on_result = on_result
+        self.clock = clock
+        self.stats = StageStats()
+        self._scans: deque[tuple[Scan, float | None, list[Odometry]]] = deque()
+        self._odom: deque[Odometry] = deque(maxlen=odom_buffer)
+        self._carry: list[Odometry] = []  # odometry of dropped scans, for the next processed one
+        self._wakeup = asyncio.Event()
+        self._closed = False
+        self._own_executor = executor is None
+        self._executor = executor or concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="glassmap-proc")
+
+    # -- producers (event loop thread) -------------------------------------------------------------------
+    def submit_scan(self, scan: Scan, bytes_in_time: float | None = None) -> None:
+        self.stats.scans_received += 1
+        odoms = list(self._odom)
+        self._odom.clear()
+        if len(self._scans) >= self.queue_size:
+            old, _, old_odoms = self._scans.popleft()
+            self.stats.dropped_overflow += 1
+            log.debug("scan %d dropped: processing queue full", old.seq)
+            if self._scans:
+                nxt = self._scans[0]
+                self._scans[0] = (nxt[0], nxt[1], old_odoms + nxt[2])
+            else:
+                odoms = old_odoms + odoms
+        self._scans.append((scan, bytes_in_time, odoms))
+        self._wakeup.set()
+
+    def submit_odometry(self, odom: Odometry) -> None:
+        self.stats.odometry_received += 1
+        if len(self._odom) == self._odom.maxlen:
+            self.stats.odometry_dropped += 1
+        self._odom.append(odom)
+
+    def close(self) -> None:
+        """Let :meth:`run` finish the queued scans and return."""
+        self._closed = True
+        self._wakeup.set()
+
+    @property
+    def pending(self) -> int:
+        return len(self._scans)
+
+    # -- consumer ------------------------------------------------------------------------------------------
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            if not self._scans:
+                if self._closed:
+                    return
+                self._wakeup.clear()
+                await self._wakeup.wait()
+                continue
+            scan, t_in, odoms = self._scans.popleft()
+            odoms = self._carry + odoms
+            self._carry = []
+            age = self.clock() - scan.stamp
+            if age > self.max_scan_age:
+                self.stats.dropped_stale += 1
+                self._carry = odoms
+                log.debug("scan %d dropped: stale (%.3f s old)", scan.seq, age)
+                continue
+            t0 = time.perf_counter()
+            try:
+                result = await loop.run_in_executor(self._executor, self.processor.process, scan, odoms)
+            except Exception as exc:
+                raise ProcessingError(f"processing scan {scan.seq} (t={scan.stamp:.3f}) failed: "
+                                      f"{type(exc).__name__}: {exc}") from exc
+            self.stats.busy_time += time.perf_counter() - t0
+            self.stats.scans_processed += 1
+            result.bytes_in_time = t_in
+            result.done_time = self.clock()
+            if self.on_result is not None:
+                self.on_result(result)
+
+    def shutdown(self) -> None:
+        """Release the executor thread (if this stage created it)."""
+        if self._own_executor:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+
+    async def call(self, fn, *args):
+        """Run ``fn(*args)`` in the processing thread (serialised with the scans: safe for the maps)."""
+        return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)

@@ -1,0 +1,188 @@
+"""Readers for replay: glassmap MCAP recordings, other ROS 2 MCAP files, ROS 2 bags and ROS 1 bags.
+
+Every reader yields the same things in time order: :class:`glassmap.types.Scan` (laser frame) and
+:class:`glassmap.types.Odometry` (odom frame), stamped in seconds. glassmap recordings give back the exact
+host monotonic stamps of the live run (the recording stores the clock offset); other files give their
+header stamps in seconds. Odometry comes from nav_msgs/Odometry, or else from /tf ``odom -> base`` transforms.
+Raw device bytes (glassmap recordings only) come out as :class:`drivers.capture.Capture` objects through
+:func:`read_captures`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.records import Metadata
+from mcap.stream_reader import StreamReader
+
+from drivers.capture import Capture, Chunk
+from glassmap.types import Odometry, Scan
+from runtime.messages import (
+    RAW_BYTES_TYPE,
+    TimeBase,
+    odometry_from_msg,
+    scan_from_msg,
+    stamp_to_ns,
+    typestore,
+    yaw_of,
+)
+from runtime.recorder import iter_mcap_raw
+
+log = logging.getLogger(__name__)
+
+META_NAME = "glassmap"
+BASE_FRAMES = ("base_link", "base_footprint", "base")
+
+
+class ReplayInputError(ValueError):
+    """A file cannot be replayed: missing, unknown kind, or without laser scans."""
+
+
+@dataclass
+class SourceInfo:
+    """What a replay source contains."""
+
+    path: str
+    kind: str  # 'glassmap-mcap' | 'mcap' | 'rosbag2' | 'rosbag1'
+    scan_topic: str = ""
+    odom_topic: str = ""  # '' = none; '/tf' = from transforms
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The ``glassmap`` metadata record of a recording ({} if absent); read from the file's start."""
+    try:
+        with open(path, "rb") as f:
+            for rec in StreamReader(f).records:
+                if isinstance(rec, Metadata) and rec.name == META_NAME:
+                    return dict(rec.metadata)
+    except Exception:  # cut-short file: metadata is written first, so anything later does not matter
+        pass
+    return {}
+
+
+def _kind(path: Path) -> str:
+    if not path.exists():
+        raise ReplayInputError(f"{path}: no such file or directory")
+    if path.is_dir():
+        if (path / "metadata.yaml").exists():
+            return "rosbag2"
+        raise ReplayInputError(f"{path}: a directory without metadata.yaml is not a ROS 2 bag")
+    if path.suffix == ".bag":
+        return "rosbag1"
+    if path.suffix == ".mcap":
+        return "mcap"
+    if path.suffix == ".db3":
+        return "rosbag2"
+    raise ReplayInputError(f"{path}: unknown file kind (expected .mcap, .bag, .db3 or a ROS 2 bag directory)")
+
+
+def iter_messages(path: str | Path, *, scan_topic: str | None = None,
+                  odom_topic: str | None = None) -> Iterator[Scan | Odometry]:
+    """Scans and odometry of a recording or bag in file time order (see module docstring)."""
+    path = Path(path)
+    kind = _kind(path)
+    if kind == "mcap":
+        yield from _iter_mcap(path, scan_topic, odom_topic)
+    else:
+        yield from _iter_anyreader(path, scan_topic, odom_topic)
+
+
+def _iter_mcap(path: Path, scan_topic: str | None, odom_topic: str | None) -> Iterator[Scan | Odometry]:
+    meta = read_metadata(path)
+    tb = TimeBase(int(meta["time_offset_ns"])) if "time_offset_ns" in meta else TimeBase.identity()
+    scan_topic = scan_topic or meta.get("scan_topic", "/scan")
+    odom_topic = odom_topic or meta.get("odom_topic", "/odom")
+    ts = typestore()
+    seen_scan = False
+    have_odom = False
+    for r in iter_mcap_raw(path):
+        if r.topic == scan_topic and r.msgtype.endswith("LaserScan"):
+            msg = ts.deserialize_cdr(r.data, r.msgtype)
+            seen_scan = True
+            yield scan_from_msg(msg, tb.host(stamp_to_ns(msg.header.stamp)))
+        elif r.topic == odom_topic and r.msgtype == "nav_msgs/msg/Odometry":
+            msg = ts.deserialize_cdr(r.data, r.msgtype)
+            have_odom = True
+            yield odometry_from_msg(msg, tb.host(stamp_to_ns(msg.header.stamp)))
+        elif r.topic == "/tf" and not have_odom and r.msgtype == "tf2_msgs/msg/TFMessage":
+            msg = ts.deserialize_cdr(r.data, r.msgtype)
+            yield from _odom_from_tf(msg, tb)
+    if not seen_scan:
+        raise ReplayInputError(f"{path}: no sensor_msgs/LaserScan messages on {scan_topic}")
+
+
+def _odom_from_tf(msg, tb: TimeBase) -> Iterator[Odometry]:
+    for t in msg.transforms:
+        parent = t.header.frame_id.lstrip("/")
+        child = t.child_frame_id.lstrip("/")
+        if parent == "odom" and child in BASE_FRAMES:
+            tr = t.transform
+            yield Odometry(stamp=tb.host(stamp_to_ns(t.header.stamp)), x=float(tr.translation.x),
+                           y=float(tr.translation.y), yaw=yaw_of(tr.rotation))
+
+
+def _iter_anyreader(path: Path, scan_topic: str | None, odom_topic: str | None) -> Iterator[Scan | Odometry]:
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except (AnyReaderError, Exception) as exc:
+        raise ReplayInputError(f"{path}: cannot open as a ROS bag ({exc})") from exc
+    tb = TimeBase.identity()
+    try:
+        conns = reader.connections
+        scans = [c for c in conns if c.msgtype.endswith("LaserScan") and (scan_topic in (None, c.topic))]
+        if not scans:
+            raise ReplayInputError(f"{path}: no sensor_msgs/LaserScan topic"
+                                   + (f" named {scan_topic}" if scan_topic else ""))
+        odoms = [c for c in conns if c.msgtype.split("/")[-1] == "Odometry" and (odom_topic in (None, c.topic))]
+        tfs = [c for c in conns if c.topic in ("/tf", "tf") and c.msgtype.split("/")[-1] == "TFMessage"]
+        scan_t = scans[0].topic
+        selected = [c for c in scans if c.topic == scan_t]
+        if odoms:
+            selected += [c for c in odoms if c.topic == odoms[0].topic]
+        else:
+            selected += tfs
+        if not odoms and not tfs:
+            log.warning("%s: no odometry and no /tf: the pose comes from scan matching alone", path)
+        seq = 0
+        for con, _t, raw in reader.messages(connections=selected):
+            msg = reader.deserialize(raw, con.msgtype)
+            kind = con.msgtype.split("/")[-1]
+            if kind == "LaserScan":
+                seq += 1
+                yield scan_from_msg(msg, tb.host(stamp_to_ns(msg.header.stamp)), seq=seq)
+            elif kind == "Odometry":
+                yield odometry_from_msg(msg, tb.host(stamp_to_ns(msg.header.stamp)))
+            else:
+                yield from _odom_from_tf(msg, tb)
+    finally:
+        reader.close()
+
+
+def read_captures(path: str | Path) -> dict[str, Capture]:
+    """The raw device bytes of a glassmap recording as captures, by device ('laser', 'base').
+
+    Chunk times are seconds since the device's first chunk (the capture format); the absolute host time
+    of the first chunk is in ``capture.note`` as JSON ``{"t0": host_seconds, "url": ...}``.
+    """
+    ts = typestore()
+    caps: dict[str, Capture] = {}
+    t0: dict[str, float] = {}
+    for r in iter_mcap_raw(path):
+        if r.msgtype != RAW_BYTES_TYPE:
+            continue
+        msg = ts.deserialize_cdr(r.data, r.msgtype)
+        dev = msg.header.frame_id
+        if dev not in caps:
+            caps[dev] = Capture(device=dev, note=json.dumps({"t0": msg.host_time, "url": msg.url}))
+            t0[dev] = msg.host_time
+        caps[dev].chunks.append(Chunk(msg.host_time - t0[dev], msg.direction, bytes(msg.data)))
+    return caps

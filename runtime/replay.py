@@ -1,0 +1,285 @@
+"""Replay: re-run the processing on a recording or a bag, as fast as possible, with other settings.
+
+Two sources for a glassmap recording:
+- ``messages``: the decoded /scan and /odom messages (also any ROS 1 / ROS 2 bag with LaserScan plus
+  Odometry or /tf, see :mod:`runtime.readers`);
+- ``raw``: the raw device bytes, decoded again by the drivers' code (:mod:`runtime.raw_replay`).
+
+Each scan gets the odometry that preceded it in the file, which is what the live run fed the processor
+(see :mod:`runtime.pipeline`). With ``as_recorded`` (default for glassmap recordings) only the scans the
+live run processed (those with a /pose) are processed, so dropped scans stay dropped and the maps match.
+Many files or settings run through :func:`replay_many` (processes on this machine, or a Dask cluster).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import hashlib
+import logging
+import os
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from glassmap.types import Odometry, Scan
+from runtime.config import RuntimeConfig
+from runtime.readers import ReplayInputError, iter_messages, read_metadata
+from runtime.recorder import read_mcap
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did. Times in seconds; ``stages``: per-stage time per scan (s)."""
+
+    path: str
+    source: str
+    scans: int = 0
+    skipped: int = 0
+    odometry: int = 0
+    wall_time: float = 0.0
+    data_time: float = 0.0  # span of scan stamps in the file
+    stages: dict[str, list[float]] = field(default_factory=dict)
+    exports: dict[str, str] = field(default_factory=dict)
+    error: float | None = None  # classification error against a blueprint, when a world was given
+    final_pose: tuple[float, float, float] | None = None
+
+    @property
+    def scans_per_second(self) -> float:
+        return self.scans / self.wall_time if self.wall_time > 0 else 0.0
+
+    @property
+    def speedup(self) -> float:
+        """Replay speed relative to real time (data time / wall time)."""
+        return self.data_time / self.wall_time if self.wall_time > 0 else 0.0
+
+
+def scan_key(scan: Scan) -> bytes:
+    """Identity of a scan's contents (its ranges as recorded, float32): the same scan decoded from the raw
+    bytes and from the /scan message has the same key, whatever the stamps."""
+    return hashlib.blake2b(np.asarray(scan.ranges, dtype=np.float32).tobytes(), digest_size=16).digest()
+
+
+def processed_scans(path: str | Path) -> set[bytes] | None:
+    """Keys (:func:`scan_key`) of the scans the live run processed, or None if the recording does not say.
+
+    Each processed scan has a /glass/beams message carrying its ranges, which identifies it by content
+    (stamps are not unique: a sensor clock mapping can give two scans the same stamp)."""
+    from runtime.messages import scan_from_msg
+
+    keys = {scan_key(scan_from_msg(msg, 0.0)) for _, _, _, msg in read_mcap(path, {"/glass/beams"})}
+    return keys or None
+
+
+def recorded_config(path: str | Path, base: RuntimeConfig | None = None) -> RuntimeConfig:
+    """The [mapping] settings the recording was made with (initial pose, laser mount, ...) over ``base``."""
+    import json
+
+    cfg = base or RuntimeConfig()
+    meta = read_metadata(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else {}
+    if "mapping" in meta:
+        known = {f.name for f in dataclasses.fields(cfg.mapping)}
+        values = {k: v for k, v in json.loads(meta["mapping"]).items() if k in known}
+        cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, **values))
+    return cfg
+
+
+def prefetch(items: Iterator, depth: int = 64) -> Iterator:
+    """Run ``items`` (file reading and decoding) in a thread, ``depth`` items ahead of the consumer."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def work() -> None:
+        try:
+            for it in items:
+                if stop.is_set():
+                    return
+                q.put(it)
+            q.put(done)
+        except BaseException as exc:  # handed to the consumer
+            q.put(exc)
+
+    t = threading.Thread(target=work, name="replay-reader", daemon=True)
+    t.start()
+    try:
+        while True:
+            it = q.get()
+            if it is done:
+                return
+            if isinstance(it, BaseException):
+                raise it
+            yield it
+    finally:
+        stop.set()
+        while t.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                t.join(0.05)
+
+
+def iter_source(path: str | Path, source: str = "messages") -> Iterator[Scan | Odometry]:
+    if source == "messages":
+        return iter_messages(path)
+    if source == "raw":
+        from runtime.raw_replay import iter_raw
+
+        return iter_raw(path)
+    raise ValueError(f"source must be 'messages' or 'raw', got {source!r}")
+
+
+def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source: str = "messages",
+                as_recorded: bool = True, out_dir: str | None = None, stem: str = "glass_map",
+                progress: bool = True, world: str | None = None, limit: int | None = None) -> ReplayResult:
+    """Run the pose estimator and the glass mapper over a recording; export the maps to ``out_dir``.
+
+    world: a simulator world name/path to score the map against its blueprint (simulated recordings).
+    limit: stop after this many scans."""
+    from runtime.processor import MappingProcessor
+
+    cfg = config if config is not None else recorded_config(path)
+    cfg.validate()
+    path = Path(path)
+    keep: set[bytes] | None = None
+    if as_recorded and path.suffix == ".mcap" and path.is_file() and read_metadata(path):
+        keep = processed_scans(path)
+    proc = MappingProcessor(cfg.mapping)
+    res = ReplayResult(path=str(path), source=source)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc=f"replay {path.name}", unit="scan", mininterval=0.5)
+    pending: list[Odometry] = []
+    first = last = None
+    t0 = time.perf_counter()
+    try:
+        for item in prefetch(iter_source(path, source)):
+            if isinstance(item, Odometry):
+                pending.append(item)
+                res.odometry += 1
+                continue
+            if keep is not None and scan_key(item) not in keep:
+                res.skipped += 1
+                continue  # the live run dropped this scan: its odometry goes to the next one
+            r = proc.process(item, pending)
+            pending = []
+            res.scans += 1
+            first = item.stamp if first is None else first
+            last = item.stamp
+            for k, v in r.timings.items():
+                res.stages.setdefault(k, []).append(v)
+            if bar is not None:
+                bar.update(1)
+            if limit is not None and res.scans >= limit:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    res.wall_time = time.perf_counter() - t0
+    if res.scans == 0:
+        raise ReplayInputError(f"{path}: no scans were processed")
+    res.data_time = float(last - first) if first is not None else 0.0
+    est = proc.estimator.estimate()
+    res.final_pose = (est.x, est.y, est.yaw)
+    if out_dir:
+        res.exports = proc.export(out_dir, stem)
+    if world:
+        from glassmap.sim.world import load_world
+        from runtime.evaluate import evaluate_map
+
+        res.error = evaluate_map(proc, load_world(world)).error
+    res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
+    return res
+
+
+# -- many files / settings ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReplayJob:
+    """One replay: a file and the settings to use (picklable, for process pools and Dask)."""
+
+    path: str
+    config: RuntimeConfig
+    source: str = "messages"
+    out_dir: str | None = None
+    stem: str = "glass_map"
+    world: str | None = None
+
+
+def _run_job(job: ReplayJob) -> ReplayResult:
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    res = replay_file(job.path, job.config, source=job.source, out_dir=job.out_dir, stem=job.stem,
+                      progress=False, world=job.world)
+    if hasattr(res, "_processor"):
+        del res._processor  # type: ignore[attr-defined]  # not picklable cheaply, not needed remotely
+    return res
+
+
+def replay_many(jobs: Iterable[ReplayJob], *, workers: int | None = None, dask_address: str | None = None,
+                progress: bool = True) -> list[ReplayResult | BaseException]:
+    """Run jobs in parallel: a process pool on this machine (default: one worker per core), or a Dask
+    cluster given its scheduler address (``tcp://host:8786``; needs the ``dask`` extra). Results come back
+    in job order; a failed job gives its exception instead of a result."""
+    jobs = list(jobs)
+    results: list[ReplayResult | BaseException] = [None] * len(jobs)  # type: ignore[list-item]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc="replay jobs", unit="job")
+    if dask_address:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise RuntimeError("a Dask cluster needs the 'distributed' package: pip install 'glassmap[dask]'") from None
+        client = Client(dask_address)
+        executor: concurrent.futures.Executor = client.get_executor()
+    else:
+        n = workers or os.cpu_count() or 1
+        executor = concurrent.futures.ProcessPoolExecutor(max_workers=min(n, max(1, len(jobs))))
+    try:
+        futures = {executor.submit(_run_job, j): i for i, j in enumerate(jobs)}
+        for fut in concurrent.futures.as_completed(futures):
+            i = futures[fut]
+            try:
+                results[i] = fut.result()
+            except Exception as exc:  # reported per job
+                results[i] = exc
+            if bar is not None:
+                bar.update(1)
+    finally:
+        executor.shutdown(wait=True)
+        if bar is not None:
+            bar.close()
+        if dask_address:
+            client.close()
+    return results
+
+
+def with_settings(config: RuntimeConfig, **mapping: object) -> RuntimeConfig:
+    """A copy of ``config`` with some [mapping] settings changed (e.g. registration='direct')."""
+    return dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, **mapping))
+
+
+def summarize(results: list[ReplayResult]) -> str:
+    lines = []
+    for r in results:
+        lat = {k: 1e3 * float(np.median(v)) for k, v in r.stages.items()}
+        err = f", error {100 * r.error:.1f} %" if r.error is not None else ""
+        lines.append(f"{r.path}: {r.scans} scans in {r.wall_time:.1f} s ({r.scans_per_second:.0f} scans/s, "
+                     f"{r.speedup:.1f}x real time), median total {lat.get('total', float('nan')):.1f} ms/scan{err}")
+    return "\n".join(lines)

@@ -1,0 +1,153 @@
+"""PoseEstimator: follows odometry when scans are useless, corrects biased odometry with scans, exposes
+the contract used by the glass mapper and the runtime."""
+
+import numpy as np
+import pytest
+
+from glassmap.pose import EstimatorConfig, PoseEstimator
+from glassmap.pose.motion import compose
+from glassmap.types import LaserGeometry, Odometry, PoseEstimate, Scan
+from tests.pose.synth import make_scan, room_with_corner
+
+GEOM = LaserGeometry()
+
+
+def _scan(ranges, stamp):
+    return Scan(stamp=stamp, ranges=np.asarray(ranges, dtype=float), intensities=None, geometry=GEOM)
+
+
+@pytest.mark.parametrize("kind", ["empty", "all_inf", "all_nan", "too_short"])
+def test_degenerate_scans_fall_back_to_odometry_with_growing_covariance(kind):
+    est = PoseEstimator()
+    n = GEOM.n_beams
+    bad = {"empty": np.zeros(0), "all_inf": np.full(n, np.inf), "all_nan": np.full(n, np.nan),
+           "too_short": np.full(n, 0.01)}[kind]
+    traces = []
+    for k in range(11):
+        t = 0.1 * k
+        est.predict(Odometry(stamp=t, x=0.05 * k, y=0.0, yaw=0.02 * k, v=0.5, omega=0.2))
+        e = est.update(_scan(bad, t))
+        traces.append(np.trace(e.covariance))
+    assert e.x == pytest.approx(0.5, abs=1e-9) and e.yaw == pytest.approx(0.2, abs=1e-9)
+    assert np.all(np.diff(traces) > 0)  # never shrinks without a match
+    assert est.stats.matched == 0 and est.stats.no_match == 11
+    assert np.all(np.isfinite(e.covariance)) and np.all(np.linalg.eigvalsh(e.covariance) > 0)
+
+
+def test_no_odometry_yet_keeps_the_initial_pose():
+    est = PoseEstimator(EstimatorConfig(initial_pose=(1.0, 2.0, 0.5)))
+    e = est.update(_scan(np.full(GEOM.n_beams, np.inf), 3.0))
+    assert e.pose == pytest.approx([1.0, 2.0, 0.5]) and e.stamp == 3.0
+
+
+def test_scans_correct_biased_odometry_in_a_room():
+    """Odometry over-counts rotation by 5 % and distance by 3 % (8 cm off after 6 s); matching keeps the pose
+    within 2 cm."""
+    segs = room_with_corner()
+    mount = np.array([0.1, 0.0, 0.0])
+    est = PoseEstimator(EstimatorConfig(laser_mount=tuple(mount), initial_pose=(-1.5, -1.0, 0.0)))
+    rng = np.random.default_rng(3)
+    true = np.array([-1.5, -1.0, 0.0])
+    odom = np.zeros(3)
+    errs, odo_errs = [], []
+    dt = 0.025
+    for k in range(240):
+        v, w = 0.4, (0.6 if 60 <= k < 140 else 0.0)
+        step = np.array([v * dt, 0.0, w * dt])
+        if k > 0:
+            true = compose(true, step)
+            odom = compose(odom, np.array([1.03 * step[0], 0.0, 1.05 * step[2]]))
+        t = k * dt
+        est.predict(Odometry(stamp=t, x=odom[0], y=odom[1], yaw=odom[2], v=v, omega=w))
+        e = est.update(make_scan(segs, compose(true, mount), stamp=t, noise=0.01, rng=rng))
+        errs.append(np.hypot(e.x - true[0], e.y - true[1]))
+        odo_errs.append(np.hypot(*(compose(np.array([-1.5, -1.0, 0.0]), odom)[:2] - true[:2])))
+    assert est.stats.matched > 200
+    assert max(errs) < 0.02 and odo_errs[-1] > 0.07
+    assert abs(float(e.yaw - true[2])) < np.radians(0.75)  # odometry: 5 % of 1.2 rad = 3.4 deg off
+    assert abs(float(odom[2] - true[2])) > np.radians(3.0)
+
+
+def test_registration_sigma_formula():
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), range_sigma=0.01, range_sigma_per_m=0.0))
+    cov = np.diag([0.03 ** 2, 0.02 ** 2, np.radians(1.0) ** 2])
+    e = PoseEstimate(stamp=0.0, x=0.0, y=0.0, yaw=0.0, covariance=cov)
+    r = np.array([0.0, 1.0, 10.0, np.inf, np.nan])
+    s = est.registration_sigma(e, r)
+    expect = np.sqrt(0.03 ** 2 + (r[:3] * np.radians(1.0)) ** 2 + 0.01 ** 2)
+    assert s[:3] == pytest.approx(expect)
+    assert np.isnan(s[3:]).all()
+    assert s[2] == pytest.approx(0.1774, abs=1e-3)  # 10 m at 1 deg: about 17.5 cm
+
+
+def test_laser_pose_applies_the_mount_offset():
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.1, 0.0, 0.0)))
+    e = PoseEstimate(stamp=0.0, x=1.0, y=2.0, yaw=np.pi / 2)
+    assert est.laser_pose(e) == pytest.approx([1.0, 2.1, np.pi / 2])
+    e.covariance = np.diag([0.0, 0.0, 0.01 ** 2])
+    lc = est.laser_covariance(e)
+    assert lc[0, 0] == pytest.approx((0.1 * 0.01) ** 2)  # yaw error swings the laser sideways (x here)
+
+
+def test_scan_is_integrated_into_the_shared_grid_at_the_estimated_pose():
+    est = PoseEstimator(EstimatorConfig(initial_pose=(0.0, 0.0, 0.0), laser_mount=(0.0, 0.0, 0.0)))
+    segs = room_with_corner()
+    est.update(make_scan(segs, np.zeros(3)))
+    occ = est.occupancy
+    ix, iy = occ.grid.world_to_cell(np.array([3.01, 0.0]))  # the east wall at x = 3
+    assert occ.occupied()[iy, ix]
+    assert occ.free()[occ.grid.world_to_cell(np.array([1.0, -1.0]))[::-1].tolist()[0],
+                      occ.grid.world_to_cell(np.array([1.0, -1.0]))[0]] == False  # one scan: not yet "free"
+
+
+def test_glass_weights_down_weight_beams_ending_on_glass_cells():
+    est = PoseEstimator(EstimatorConfig(glass_min_weight=0.1))
+    g = est.occupancy.grid
+    g.add_layer("glass", 0.0, np.float32)
+    ix, iy = g.world_to_cell(np.array([2.0, 0.0]))
+    g["glass"][iy, ix] = np.log(0.99 / 0.01)  # p = 0.99
+    jx, jy = g.world_to_cell(np.array([0.0, 2.0]))
+    g["glass"][jy, jx] = np.log(0.2 / 0.8)  # p = 0.2: not glass
+    w = est.glass_weights(np.zeros(3), np.array([0.0, np.pi / 2, 0.0]), np.array([2.01, 2.01, np.nan]))
+    assert w[0] == pytest.approx(1 - 0.9 * 0.98, abs=1e-6)
+    assert w[1] == 1.0 and w[2] == 1.0
+    mask = est.glass_protect_mask()
+    assert mask[iy, ix] and mask.sum() == 1
+
+
+@pytest.mark.parametrize("subcell, limit", [(True, 0.005), (False, None)])
+def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
+    """A box whose walls lie 1 cm off cell centres: with sub-cell wall positions a robot standing still
+    stays within 5 mm; measuring to cell centres drags it about a centimetre (kept as a reference)."""
+    segs = np.array([[-3.013, -2.027, 3.011, -2.027], [3.011, -2.027, 3.011, 2.019],
+                     [3.011, 2.019, -3.013, 2.019], [-3.013, 2.019, -3.013, -2.027]])
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1))
+    rng = np.random.default_rng(0)
+    for k in range(15):
+        e = est.update(make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng))
+    err = np.hypot(e.x, e.y)
+    if limit is not None:
+        assert err < limit
+    else:
+        assert err > 0.007
+
+
+def test_nan_stamp_is_refused_with_a_clear_message():
+    est = PoseEstimator()
+    with pytest.raises(ValueError, match="stamp"):
+        est.update(_scan(np.full(GEOM.n_beams, 2.0), float("nan")))
+
+
+def test_without_integration_the_caller_updates_the_grid_and_matching_still_works():
+    """integrate=False (the glass mapper updates the shared grid): the estimator still keeps its per-cell
+    bookkeeping and matches against what the caller integrated."""
+    segs = room_with_corner()
+    est = PoseEstimator(EstimatorConfig(integrate=False, laser_mount=(0.0, 0.0, 0.0)))
+    rng = np.random.default_rng(1)
+    for k in range(30):
+        est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
+        scan = make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng)
+        e = est.update(scan)
+        est.occupancy.integrate(est.laser_pose(e), scan.angles, scan.ranges)  # what the mapper would do
+    assert est.occupancy.grid["pose_hit_n"].sum() > 30 * 500
+    assert est.stats.matched >= 15 and np.hypot(e.x, e.y) < 0.01  # the field is rebuilt every 10 scans

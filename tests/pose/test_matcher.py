@@ -1,0 +1,106 @@
+"""Correlative matcher: recovers a known offset; the covariance follows the geometry (corridor vs corner)."""
+
+import numpy as np
+import pytest
+
+from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.pose.field import FieldParams, LikelihoodField
+from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, select_points
+from tests.pose.synth import corridor, make_scan, room_with_corner
+
+PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
+
+
+def _map_of(segments, pose=np.zeros(3), n=3):
+    """Occupancy from n noisy scans at true poses around ``pose`` (a few cm and a degree apart)."""
+    occ = OccupancyGrid(MapGrid())
+    for i in range(n):
+        p = pose + np.array([0.03 * i, -0.02 * i, np.radians(0.7) * i])
+        s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
+        occ.integrate(p, s.angles, s.ranges)
+    fld = LikelihoodField()
+    fld.rebuild(occ, pose[:2])
+    return fld
+
+
+def _match(fld, segments, true_pose, prior_pose=np.zeros(3), config=MatcherConfig(), seed=7):
+    s = make_scan(segments, true_pose, noise=0.01, rng=np.random.default_rng(seed))
+    m = CorrelativeMatcher(config)
+    pts, w, _ = select_points(s.angles, s.ranges, np.zeros(3), m.config)
+    return m.match(fld, pts, w, prior_pose, PRIOR)
+
+
+@pytest.mark.parametrize("offset", [(0.13, -0.08, 2.0), (-0.21, 0.17, -3.5), (0.0, 0.3, 0.0)])
+def test_recovers_known_offset(offset):
+    segs = room_with_corner()
+    fld = _map_of(segs)
+    true = np.array([offset[0], offset[1], np.radians(offset[2])])
+    r = _match(fld, segs, true)
+    assert r is not None
+    assert np.hypot(*(r.pose[:2] - true[:2])) < 0.02  # well below one 5 cm cell
+    assert abs(r.pose[2] - true[2]) < np.radians(0.5)
+    # the error is inside the reported uncertainty (3 sigma)
+    e = r.pose - true
+    assert e @ np.linalg.solve(r.covariance, e) < 14.2  # chi-square 3 dof, 99.7 %
+
+
+def test_corridor_covariance_is_elongated_along_the_corridor():
+    segs = corridor(length=60.0, half_width=1.0)
+    fld = _map_of(segs)
+    r = _match(fld, segs, np.array([0.1, 0.05, np.radians(1.0)]))
+    assert r is not None
+    vals, vecs = np.linalg.eigh(r.covariance[:2, :2])
+    major = vecs[:, 1]
+    assert abs(major[0]) > 0.95  # the long axis is the corridor's (x)
+    assert vals[1] / vals[0] > 5.0
+    assert np.sqrt(r.covariance[1, 1]) < 0.04  # across the corridor: well constrained
+    assert abs(r.pose[1] - 0.05) < 0.02
+
+
+def test_corner_covariance_is_small_and_round():
+    segs = np.array([[2.0, -4.0, 2.0, 2.0], [-4.0, 2.0, 2.0, 2.0]])  # an L-shaped corner ahead-left
+    fld = _map_of(segs)
+    r = _match(fld, segs, np.array([0.06, -0.04, np.radians(0.5)]))
+    assert r is not None
+    vals = np.linalg.eigvalsh(r.covariance[:2, :2])
+    assert np.sqrt(vals[1]) < 0.04
+    assert vals[1] / vals[0] < 3.0
+    corr = _match(_map_of(corridor()), corridor(), np.array([0.06, -0.04, np.radians(0.5)]))
+    assert vals[1] < 0.2 * np.linalg.eigvalsh(corr.covariance[:2, :2])[1]
+
+
+def test_no_match_on_empty_map_or_too_few_points():
+    segs = room_with_corner()
+    empty = LikelihoodField()
+    empty.rebuild(OccupancyGrid(MapGrid()), np.zeros(2))
+    assert not empty.ready
+    assert _match(empty, segs, np.zeros(3)) is None
+    fld = _map_of(segs)
+    m = CorrelativeMatcher()
+    assert m.match(fld, np.zeros((3, 2)), np.ones(3), np.zeros(3), PRIOR) is None
+
+
+def test_select_points_drops_invalid_and_thins():
+    cfg = MatcherConfig(max_points=50)
+    angles = np.linspace(-1, 1, 400)
+    ranges = np.full(400, 3.0)
+    ranges[:10] = np.nan
+    ranges[10:20] = np.inf
+    ranges[20:30] = 0.05  # below range_min
+    pts, w, idx = select_points(angles, ranges, np.array([0.1, 0.0, 0.0]), cfg)
+    assert 0 < len(pts) <= 50 and idx.min() >= 30
+    assert np.allclose(np.hypot(pts[:, 0] - 0.1, pts[:, 1]), 3.0)
+    weights = np.ones(400)
+    weights[200:] = 0.0
+    _, _, idx = select_points(angles, ranges, np.zeros(3), cfg, weights)
+    assert idx.max() < 200
+
+
+def test_field_is_floor_away_from_walls_and_peak_on_walls():
+    fld = _map_of(room_with_corner())
+    params = FieldParams()
+    arr = fld.fine.reshape(fld.shape)
+    assert arr.max() == pytest.approx(np.log(1 + params.p_floor), abs=1e-5)
+    assert arr.min() == pytest.approx(np.log(params.p_floor), abs=1e-3)
+    coarse = fld.coarse.reshape(fld.shape)
+    assert (coarse >= arr - 1e-6).all()  # block maximum is an upper bound

@@ -1,0 +1,57 @@
+"""Scoring the online map against the blueprint: grid alignment and the paper's per-cell rule."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from glassmap.glass import GlassMap
+from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.sim.blueprint import Blueprint
+from glassmap.sim.world import load_world
+from runtime.evaluate import evaluate_map
+
+
+def perfect_mapper(world, shift_cells=(7, -3), glass_value=3.0):
+    """A map grid offset from the blueprint's by ``shift_cells`` (x, y), holding the blueprint exactly."""
+    bp = Blueprint.from_world(world, resolution=0.05)
+    h, w = bp.labels.shape
+    pad = 20
+    origin = bp.origin - 0.05 * (np.array(shift_cells) + pad)
+    grid = MapGrid(0.05, origin=tuple(origin), shape=(h + 2 * pad + 10, w + 2 * pad + 10))
+    occ = OccupancyGrid(grid)
+    glass = GlassMap(grid)
+    y0, x0 = pad + shift_cells[1], pad + shift_cells[0]
+    occ.log_odds[y0:y0 + h, x0:x0 + w] = np.where(bp.labels > 0, 3.0, -3.0)
+    glass.log_odds[y0:y0 + h, x0:x0 + w] = np.where(bp.labels == 2, glass_value, -3.0)
+    return SimpleNamespace(mapper=SimpleNamespace(grid=grid, occupancy=occ, glass=glass)), bp
+
+
+@pytest.fixture(scope="module")
+def world():
+    return load_world("office")
+
+
+def test_a_map_equal_to_the_blueprint_scores_zero(world):
+    proc, bp = perfect_mapper(world)
+    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    assert ev.error == 0.0 and ev.glass_recall == 1.0 and ev.false_glass_rate == 0.0
+    assert ev.n_glass > 100 and ev.n_wall > 100 and ev.seen_from == "simulator"
+
+
+def test_glass_called_wall_counts_every_glass_cell(world):
+    proc, bp = perfect_mapper(world, glass_value=-3.0)
+    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    assert ev.error == pytest.approx(ev.n_glass / ev.n_cells)
+    assert ev.glass_recall == 0.0
+
+
+def test_only_seen_cells_count(world):
+    proc, bp = perfect_mapper(world, glass_value=0.0)  # undecided everywhere on glass
+    seen = np.zeros(bp.labels.shape, bool)
+    assert evaluate_map(proc, world, seen=seen).n_cells == 0
+    seen[:, : bp.labels.shape[1] // 2] = True
+    ev = evaluate_map(proc, world, seen=seen)
+    assert 0 < ev.n_cells and ev.error == pytest.approx(ev.n_glass / ev.n_cells) and ev.unregistered > 0

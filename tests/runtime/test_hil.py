@@ -1,0 +1,256 @@
+"""Hardware-in-the-loop: the full runtime against the emulated Hokuyo (loopback TCP) and Pioneer (pty).
+
+The emulated devices run in their own process (runtime.devices), driven by the simulator; the runtime
+connects to them with the real drivers exactly as to hardware.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from runtime.app import Runtime, RuntimeFailure
+from runtime.config import RuntimeConfig
+from runtime.demo import DemoOptions, run_demo
+from runtime.devices import DeviceProcess
+from runtime.pipeline import ScanResult
+from runtime.recorder import read_mcap, recover_mcap
+from runtime.replay import replay_file
+
+ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.timeout(180)
+
+TOPICS = {"/scan", "/odom", "/tf", "/tf_static", "/pose", "/glass/beams", "/map", "/glass/map", "/rosout",
+          "/cmd_vel", "/raw/laser", "/raw/base"}
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    res = asyncio.run(run_demo(DemoOptions(speed=2.0, duration=8.0, out_dir=str(out), progress=False)))
+    return res, out
+
+
+def test_demo_drives_maps_records_and_scores(demo):
+    res, out = demo
+    s = res.summary
+    assert s.stop_reason == "duration 8 s (emulated) reached"
+    assert s.scans_processed > 5  # how many depends on the machine's load: the rest are dropped and counted
+    assert s.scans_received >= s.scans_processed + s.dropped_overflow + s.dropped_stale
+    assert s.scans_received > 150  # 40 Hz x 8 emulated s, minus start-up
+    assert s.odometry > 40  # 10 Hz SIPs
+    # The robot was driven along the office corridor by velocity commands from the estimated pose.
+    assert res.true_final_pose[0] > 1.2 + 0.5
+    assert abs(res.true_final_pose[1] - 1.2) < 0.3
+    # ... and left stopped and disabled, the laser stream stopped.
+    rep = res.device_report
+    assert rep["commanded"] == [0.0, 0.0] and rep["motors_enabled"] is False
+    assert rep["laser_state"] != "streaming"
+    assert Path(res.png).is_file() and Path(res.png).stat().st_size > 1000
+    for k in ("npy", "pgm", "yaml"):
+        assert Path(s.exports[k]).is_file()
+    assert res.evaluation is not None and 0.0 <= res.evaluation.error <= 1.0 and res.evaluation.n_cells > 100
+
+
+def test_recording_opens_with_anyreader_and_has_every_topic(demo):
+    res, _ = demo
+    with AnyReader([Path(res.recording)]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        assert TOPICS <= set(counts), set(counts) ^ TOPICS
+        assert counts["/pose"] == res.summary.scans_processed
+        assert counts["/scan"] == res.summary.scans_received
+        for con, _, raw in reader.messages([c for c in reader.connections if c.topic == "/tf_static"]):
+            tf = reader.deserialize(raw, con.msgtype).transforms[0]
+            assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", "laser")
+            assert tf.transform.translation.x == pytest.approx(0.1)
+        frames = set()
+        for con, _, raw in reader.messages([c for c in reader.connections if c.topic == "/tf"]):
+            t = reader.deserialize(raw, con.msgtype).transforms[0]
+            frames.add((t.header.frame_id, t.child_frame_id))
+        assert frames == {("map", "odom"), ("odom", "base_link")}
+
+
+def test_replay_of_the_messages_gives_exactly_the_live_maps(demo):
+    res, out = demo
+    live = np.load(res.summary.exports["npy"])
+    # From the decoded messages: exactly the same inputs, so exactly the same maps.
+    r = replay_file(res.recording, source="messages", out_dir=str(out / "messages"), progress=False)
+    assert r.scans == res.summary.scans_processed
+    np.testing.assert_array_equal(np.load(r.exports["npy"]), live)
+    assert r.final_pose == pytest.approx(tuple(res.estimated_final_pose), abs=0)
+
+
+def test_replay_through_the_drivers_gives_the_same_maps(demo):
+    res, out = demo
+    live = np.load(res.summary.exports["npy"])
+    # From the raw bytes through the drivers' decoders: the same scans and odometry; the stamps differ by
+    # the scheduling delay the live client saw in its clock-sync round trips (sub-millisecond to a few ms).
+    r = replay_file(res.recording, source="raw", out_dir=str(out / "raw"), progress=False)
+    assert r.scans == res.summary.scans_processed
+    again = np.load(r.exports["npy"])
+    assert again.shape == live.shape
+    both = np.isfinite(live) & np.isfinite(again)
+    assert both.sum() >= 0.95 * max(np.isfinite(live).sum(), np.isfinite(again).sum())
+    assert ((live[both] > 0.5) == (again[both] > 0.5)).mean() >= 0.98
+    est = res.estimated_final_pose
+    assert np.hypot(r.final_pose[0] - est[0], r.final_pose[1] - est[1]) < 0.02
+
+
+def test_laser_link_pulled_mid_run_reconnects_and_recording_continues(tmp_path):
+    res = asyncio.run(run_demo(DemoOptions(speed=2.0, duration=6.0, out_dir=str(tmp_path), progress=False,
+                                           laser_link_loss_at=2.5)))
+    assert res.device_report["laser_disconnects"] == 1
+    assert res.summary.laser_reconnects >= 1
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+              for _, _, _, m in read_mcap(res.recording, {"/scan"})]
+    gaps = np.diff(stamps)
+    assert gaps.max() > 0.05  # the outage
+    i = int(np.argmax(gaps))
+    assert len(stamps) - i > 40  # scans kept coming (and being recorded) after the reconnect
+    poses = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for _, _, _, m in read_mcap(res.recording, {"/pose"})]
+    assert sum(t > stamps[i + 1] for t in poses) >= 3  # ... and being processed
+
+
+def test_processing_crash_stops_the_robot(tmp_path):
+    class Crashing:
+        def __init__(self, inner):
+            self.inner, self.n = inner, 0
+
+        def process(self, scan, odometry) -> ScanResult:
+            self.n += 1
+            if self.n == 15:
+                raise FloatingPointError("injected failure")
+            return self.inner.process(scan, odometry)
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    async def main():
+        from runtime.processor import MappingProcessor
+
+        devices = await DeviceProcess.start("office", 2.0, 0)
+        try:
+            cfg = RuntimeConfig(laser_url=devices.laser_url, base_url=devices.base_url)
+            cfg.base.enable_motors = True
+            cfg.mapping.initial_x, cfg.mapping.initial_y = 1.2, 1.2
+            cfg.output.out_dir = str(tmp_path)
+
+            async def drive(rt):
+                while True:
+                    await rt.command_velocity(0.3, 0.0)
+                    await asyncio.sleep(0.05)
+
+            rt = Runtime(cfg, processor=Crashing(MappingProcessor(cfg.mapping)), driver=drive,
+                         pioneer_options={"time_scale": 2.0})
+            with pytest.raises(RuntimeFailure, match="processing failed") as err:
+                await rt.run(duration=30)
+            assert "injected failure" in str(err.value.__cause__)
+        finally:
+            report = await devices.stop()
+        return report
+
+    report = asyncio.run(main())
+    assert report["commanded"] == [0.0, 0.0] and report["motors_enabled"] is False
+    assert report["laser_state"] != "streaming"
+
+
+def _glassmap(*args, **kw) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "glassmap.cli", *args], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _wait_for_size(path: Path, size: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    t0 = time.monotonic()
+    while not (path.exists() and path.stat().st_size > size):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < timeout, "recording did not grow"
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("sig", [pytest.param(signal.SIGINT, id="ctrl-c"),
+                                 pytest.param(signal.SIGTERM, id="sigterm", marks=pytest.mark.slow)])
+def test_ctrl_c_stops_robot_and_closes_files(tmp_path, sig):
+    async def main():
+        devices = await DeviceProcess.start("office", 1.0, 0)
+        rec = tmp_path / "run.mcap"
+        try:
+            proc = _glassmap("run", "--laser", devices.laser_url, "--base", devices.base_url, "--record", str(rec),
+                             "--out", str(tmp_path / "maps"), "--base.enable_motors", "true",
+                             "--output.export_period", "1")
+            await asyncio.get_running_loop().run_in_executor(None, _wait_for_size, rec, 200_000, proc)
+            proc.send_signal(sig)
+            out, err = await asyncio.get_running_loop().run_in_executor(None, proc.communicate, None, 60)
+        finally:
+            report = await devices.stop()
+        return proc.returncode, out, err, report
+
+    code, out, err, report = asyncio.run(main())
+    assert code == 0, err
+    assert f"stopped: {signal.Signals(sig).name} received" in out
+    assert report["motors_enabled"] is False and report["commanded"] == [0.0, 0.0]
+    assert report["laser_state"] != "streaming"
+    with AnyReader([tmp_path / "run.mcap"]) as reader:  # complete file: summary and footer written
+        assert {"/scan", "/odom", "/raw/laser", "/raw/base", "/rosout"} <= {c.topic for c in reader.connections}
+    assert (tmp_path / "maps" / "glass_map.png").is_file()
+    assert (tmp_path / "maps" / "glass_map.pgm").is_file()
+
+
+def test_sigkill_mid_recording_leaves_a_readable_file(tmp_path):
+    rec = tmp_path / "demo.mcap"
+    proc = _glassmap("demo", "--speed", "2", "--out", str(tmp_path), "--no-progress",
+                     "--output.chunk_interval", "0.5")
+    try:
+        _wait_for_size(rec, 300_000, proc)
+        time.sleep(1.0)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=30)
+    topics = {}
+    for topic, _, _, _ in read_mcap(rec):
+        topics[topic] = topics.get(topic, 0) + 1
+    assert topics.get("/scan", 0) > 20 and topics.get("/raw/laser", 0) > 20
+    fixed = tmp_path / "fixed.mcap"
+    assert recover_mcap(rec, fixed).messages == sum(topics.values())
+    with AnyReader([fixed]) as reader:
+        assert sum(c.msgcount for c in reader.connections) == sum(topics.values())
+    r = replay_file(fixed, progress=False)
+    assert r.scans > 10
+
+
+@pytest.mark.slow
+def test_many_replays_in_a_process_pool(demo):
+    from runtime.replay import ReplayJob, recorded_config, replay_many, with_settings
+
+    res, out = demo
+    base = recorded_config(res.recording)
+    jobs = [ReplayJob(res.recording, with_settings(base, registration=reg), out_dir=str(out / "pool"), stem=reg)
+            for reg in ("direct", "robust")]
+    results = replay_many(jobs, workers=2, progress=False)
+    assert [r.scans for r in results] == [res.summary.scans_processed] * 2
+    assert all(Path(r.exports["png"]).is_file() for r in results)
+
+
+@pytest.mark.hardware
+def test_real_devices_short_run(tmp_path):
+    """Against the real robot (opt-in): GLASSMAP_LASER_URL and GLASSMAP_BASE_URL name the devices. The robot
+    is not moved (motors stay disabled)."""
+    laser, base = os.environ.get("GLASSMAP_LASER_URL"), os.environ.get("GLASSMAP_BASE_URL")
+    if not laser or not base:
+        pytest.skip("set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL to run against real devices")
+    cfg = RuntimeConfig(laser_url=laser, base_url=base)
+    cfg.output.out_dir = str(tmp_path)
+    cfg.output.record = str(tmp_path / "real.mcap")
+    summary = asyncio.run(Runtime(cfg).run(duration=5.0))
+    assert summary.scans_processed > 0 and summary.odometry > 0
+    with AnyReader([tmp_path / "real.mcap"]) as reader:
+        assert {"/scan", "/odom", "/raw/laser", "/raw/base"} <= {c.topic for c in reader.connections}

@@ -1,0 +1,100 @@
+"""The processing stage: bounded queue, stale-scan dropping with counters, odometry hand-over, crashes."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import pytest
+
+from runtime.pipeline import ProcessingError, ProcessingStage, ScanResult
+from tests.runtime.conftest import make_odom, make_scan
+
+pytestmark = pytest.mark.timeout(30)
+
+
+class Recorder:
+    """A processor that records its calls; optionally blocks until released (runs in the executor)."""
+
+    def __init__(self, block: bool = False, fail_on: int | None = None) -> None:
+        self.calls: list[tuple[int, list[float]]] = []
+        self.release = threading.Event()
+        self.started = threading.Event()
+        if not block:
+            self.release.set()
+        self.fail_on = fail_on
+
+    def process(self, scan, odometry):
+        self.started.set()
+        self.release.wait(10)
+        if scan.seq == self.fail_on:
+            raise ZeroDivisionError("boom")
+        self.calls.append((scan.seq, [o.stamp for o in odometry]))
+        return ScanResult(scan=scan, estimate=None, laser_pose=None, p_glass=None)
+
+
+async def test_processes_in_order_with_the_odometry_that_arrived_before_each_scan():
+    proc = Recorder()
+    results = []
+    stage = ProcessingStage(proc, queue_size=10, max_scan_age=1e9, on_result=results.append, clock=lambda: 0.0)
+    stage.submit_odometry(make_odom(0.1))
+    stage.submit_scan(make_scan(0.2, 1), bytes_in_time=0.25)
+    stage.submit_odometry(make_odom(0.3))
+    stage.submit_odometry(make_odom(0.4))
+    stage.submit_scan(make_scan(0.45, 2))
+    stage.close()
+    await stage.run()
+    assert proc.calls == [(1, [0.1]), (2, [0.3, 0.4])]
+    assert [r.scan.seq for r in results] == [1, 2]
+    assert results[0].bytes_in_time == 0.25
+    assert stage.stats.scans_processed == 2 and stage.stats.dropped_overflow == stage.stats.dropped_stale == 0
+    stage.shutdown()
+
+
+async def test_full_queue_drops_oldest_and_counts_and_keeps_its_odometry():
+    proc = Recorder(block=True)
+    stage = ProcessingStage(proc, queue_size=2, max_scan_age=1e9, clock=lambda: 0.0)
+    runner = asyncio.create_task(stage.run())
+    stage.submit_scan(make_scan(0.0, 0))
+    await asyncio.get_running_loop().run_in_executor(None, proc.started.wait, 5)  # scan 0 is in the processor
+    for seq in range(1, 6):
+        stage.submit_odometry(make_odom(float(seq)))
+        stage.submit_scan(make_scan(float(seq), seq))
+    assert stage.stats.dropped_overflow == 3 and stage.pending == 2
+    proc.release.set()
+    stage.close()
+    await runner
+    assert [c[0] for c in proc.calls] == [0, 4, 5]
+    assert proc.calls[1][1] == [1.0, 2.0, 3.0, 4.0]  # odometry of dropped scans 1..3 is not lost
+    assert stage.stats.scans_received == 6 and stage.stats.scans_processed == 3
+    stage.shutdown()
+
+
+async def test_stale_scans_are_dropped_and_counted():
+    proc = Recorder()
+    now = [10.0]
+    stage = ProcessingStage(proc, queue_size=10, max_scan_age=0.5, clock=lambda: now[0])
+    stage.submit_odometry(make_odom(9.0))
+    stage.submit_scan(make_scan(9.0, 1))  # 1 s old: stale
+    stage.submit_scan(make_scan(9.8, 2))  # 0.2 s old: fresh
+    stage.close()
+    await stage.run()
+    assert stage.stats.dropped_stale == 1
+    assert proc.calls == [(2, [9.0])]
+    stage.shutdown()
+
+
+async def test_processor_crash_ends_the_stage_with_a_clear_error():
+    stage = ProcessingStage(Recorder(fail_on=2), queue_size=10, max_scan_age=1e9, clock=lambda: 0.0)
+    stage.submit_scan(make_scan(0.0, 1))
+    stage.submit_scan(make_scan(0.1, 2))
+    with pytest.raises(ProcessingError, match="scan 2.*ZeroDivisionError: boom"):
+        await stage.run()
+    stage.shutdown()
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError):
+        ProcessingStage(Recorder(), queue_size=0)
+    with pytest.raises(ValueError):
+        ProcessingStage(Recorder(), max_scan_age=0)
