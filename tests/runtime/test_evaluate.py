@@ -55,3 +55,15 @@ def test_only_seen_cells_count(world):
     seen[:, : bp.labels.shape[1] // 2] = True
     ev = evaluate_map(proc, world, seen=seen)
     assert 0 < ev.n_cells and ev.error == pytest.approx(ev.n_glass / ev.n_cells) and ev.unregistered > 0
+
+
+def test_a_map_shifted_off_the_blueprint_is_realigned(world):
+    proc, bp = perfect_mapper(world)
+    g = proc.mapper.grid
+    g.origin = g.origin + np.array([0.10, -0.05])  # the map sits 2 cells right, 1 cell down of the truth
+    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    assert ev.error > 0.5  # the strict per-cell rule counts the shifted walls as unregistered
+    assert ev.shift_cells == (-2, 1)
+    assert ev.aligned is not None and ev.aligned.error == 0.0
+    assert "after aligning" in ev.describe()
+    assert evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool), max_shift=0).aligned is None
