@@ -25,18 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from glassmap.eval.metrics import MapScore, score_map
+
 
 @dataclass
-class MapEvaluation:
-    error: float
-    glass_recall: float
-    false_glass_rate: float
-    unregistered: float
-    n_cells: int
-    n_glass: int
-    n_wall: int
+class MapEvaluation(MapScore):
+    """A :class:`MapScore` (strict per-cell rule) plus where ``seen`` came from and the aligned score."""
+
     seen_from: str = "simulator"
-    aligned: MapEvaluation | None = None
+    aligned: MapScore | None = None
     shift_cells: tuple[int, int] = (0, 0)
 
     def describe(self) -> str:
@@ -93,7 +90,6 @@ def evaluate_map(processor, world, *, seen: np.ndarray | None = None, eval_radiu
 
     seen: (H, W) bool on ``Blueprint.from_world(world, resolution)``'s grid, or None (see module docstring).
     max_shift: cells searched each way for the aligned score (0 = no aligned score)."""
-    from glassmap.eval.metrics import score_map
     from glassmap.eval.trial import evaluation_mask
     from glassmap.sim.blueprint import Blueprint
 
@@ -109,14 +105,10 @@ def evaluate_map(processor, world, *, seen: np.ndarray | None = None, eval_radiu
         seen = ndimage.binary_dilation(known, iterations=2)
         seen_from = "map"
     mask = evaluation_mask(bp.labels, seen, bp.resolution, eval_radius)
-    s = score_map(lab, bp.labels, mask)
-    result = MapEvaluation(s.error, s.glass_recall, s.false_glass_rate, s.unregistered, s.n_cells, s.n_glass,
-                           s.n_wall, seen_from)
+    result = MapEvaluation(**vars(score_map(lab, bp.labels, mask)), seen_from=seen_from)
     if max_shift > 0:
         dx, dy = best_shift(raw, bp.labels, max_shift)
         shifted = _within(np.roll(np.roll(raw, dy, axis=0), dx, axis=1), max(tolerance, 1))
-        a = score_map(shifted, bp.labels, mask)
-        result.aligned = MapEvaluation(a.error, a.glass_recall, a.false_glass_rate, a.unregistered, a.n_cells,
-                                       a.n_glass, a.n_wall, seen_from)
+        result.aligned = score_map(shifted, bp.labels, mask)
         result.shift_cells = (dx, dy)
     return result
