@@ -88,6 +88,15 @@ class MappingConfig:
                                          "are kept occupied and not cleared) or 'estimator' (plain)")
     glass_weighting: bool = _f(False, "scan matching down-weights beams ending on likely glass (the glass map)")
     max_free_range: float = _f(20.0, "a beam clears free space at most this far (m); glass lets beams through")
+    no_return_range: float = _f(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
+                                     "(near glass 'no return' often means the pulse was reflected away; 20 m "
+                                     "made the office glass map's error 37 % instead of 12 %)")
+    keyframe_distance: float = _f(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
+                                        "when the base moved this far (m) since the last key scan (0 with "
+                                        "keyframe_angle_deg 0 = every scan); every scan still gets a pose and "
+                                        "the glass update")
+    keyframe_angle_deg: float = _f(2.0, "motion filter: ... or turned this much (deg) since the last key scan")
+    keyframe_max_scans: int = _f(20, "motion filter: ... or this many scans passed since it (0 = no limit)")
     classifier_weights: str = _f("", "classifier weights stem (path without .pt/.json); '' = the shipped weights")
     laser_x: float = _f(0.1, "laser mount in the base frame: x (m, forward of the axle)")
     laser_y: float = _f(0.0, "laser mount in the base frame: y (m, left)")
@@ -151,6 +160,10 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.occupancy_update must be mapper or estimator, got {m.occupancy_update!r}")
         if m.max_free_range <= 0:
             raise ConfigError(f"mapping.max_free_range must be > 0 m, got {m.max_free_range}")
+        if m.no_return_range < 0:
+            raise ConfigError(f"mapping.no_return_range must be >= 0 m, got {m.no_return_range}")
+        if m.keyframe_distance < 0 or m.keyframe_angle_deg < 0 or m.keyframe_max_scans < 0:
+            raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
         if self.pipeline.queue_size < 1:
             raise ConfigError("pipeline.queue_size must be >= 1")
         if self.pipeline.max_scan_age <= 0:

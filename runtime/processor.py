@@ -6,6 +6,7 @@ directly (no event loop) by replay and bench.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -33,7 +34,10 @@ class MappingProcessor:
     its update keeps cells hit by glass-classified beams occupied and protects them from being cleared by
     beams passing through the glass, so glass walls stay in the map) or the estimator (plain update; the
     mapper then runs with ``update_occupancy=False``, as in core_api.md). Either way the integration
-    happens once per scan, after matching, at the corrected laser pose."""
+    happens once per key scan, after matching, at the corrected laser pose. Key scans are chosen by the
+    estimator's motion filter (``EstimatorConfig.keyframe_*``: moved >= 5 cm or turned >= 2 deg since the
+    last key scan, or 20 scans since it); every scan still gets a pose + covariance and the glass path
+    (p(glass) per beam, glass hits, registration and glass-map update)."""
 
     def __init__(self, mapping: MappingConfig, *, estimator_config=None, mapper_config=None) -> None:
         from dataclasses import replace
@@ -48,8 +52,12 @@ class MappingProcessor:
         ecfg = estimator_config or EstimatorConfig()
         ecfg = replace(ecfg, laser_mount=(mapping.laser_x, mapping.laser_y, mapping.laser_yaw),
                        glass_weighting=mapping.glass_weighting,
+                       keyframe_distance=mapping.keyframe_distance,
+                       keyframe_angle=math.radians(mapping.keyframe_angle_deg),
+                       keyframe_max_scans=mapping.keyframe_max_scans,
                        integrate=mapping.occupancy_update == "estimator",
-                       occupancy=replace(ecfg.occupancy, max_free_range=mapping.max_free_range),
+                       occupancy=replace(ecfg.occupancy, max_free_range=mapping.max_free_range,
+                                         no_return_range=mapping.no_return_range),
                        initial_pose=(mapping.initial_x, mapping.initial_y, mapping.initial_yaw))
         self.estimator = PoseEstimator(ecfg)
         mcfg = mapper_config or MapperConfig(registration=mapping.registration, window=mapping.window,
@@ -71,7 +79,8 @@ class MappingProcessor:
         t1 = time.perf_counter()
         laser_pose = self.estimator.laser_pose(est)
         sigma = self.estimator.registration_sigma(est, scan.ranges)
-        beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates)
+        key = self.estimator.stats.last_keyframe
+        beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key)
         t2 = time.perf_counter()
         self.scans += 1
         st = self.estimator.stats

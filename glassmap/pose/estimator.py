@@ -1,9 +1,11 @@
 """The online pose estimator: odometry prediction + correlative scan matching, fused by an EKF.
 
-Per scan (``update``): interpolate wheel odometry to the scan time, predict the base pose in the map frame
-with the motion-noise model, match the scan against a likelihood field of the occupancy grid built so far,
-fuse the match (pose + covariance from the score distribution) with the prediction, then integrate the
-scan into the shared occupancy grid at the corrected laser pose. The map frame is anchored at
+Per scan (``update``): interpolate wheel odometry to the scan time and predict the base pose in the map
+frame with the motion-noise model. On key scans only (motion filter: moved >= 5 cm or turned >= 2 deg
+since the last key scan, or 20 scans since it; ``EstimatorConfig.keyframe_*``): match the scan against a
+likelihood field of the occupancy grid built so far, fuse the match (pose + covariance from the score
+distribution) with the prediction, then integrate the scan into the shared occupancy grid at the
+corrected laser pose. The map frame is anchored at
 ``EstimatorConfig.initial_pose``; there is no loop closure (drift is bounded by matching against the map
 built so far, not removed).
 
@@ -46,14 +48,21 @@ class EstimatorConfig:
         Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here.
     range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
         (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
-    field_refresh_scans: the likelihood field is rebuilt from the grid every this many scans (and when the
-        robot nears the edge of the field's crop or the grid grows).
+    keyframe_distance, keyframe_angle, keyframe_max_scans: motion filter. Every scan gets the EKF prediction
+        (pose + covariance at its stamp), but scan matching, the likelihood-field rebuild and the occupancy
+        bookkeeping/integration run only on key scans: the first scan, and any scan whose predicted pose has
+        moved >= keyframe_distance (m, default 0.05) or turned >= keyframe_angle (rad, default 2 deg) since
+        the last key scan, or that comes keyframe_max_scans (default 20, 0 = never forced) scans after it.
+        keyframe_distance = keyframe_angle = 0 makes every scan a key scan (the behaviour before the filter).
+    field_refresh_scans: the likelihood field is rebuilt from the grid after this many key scans were
+        integrated, on the next scan (a non-key scan, so the cost does not add to a key scan's), and on a
+        key scan when the robot nears the edge of the field's crop or the grid grew.
     gate_chi2: matches whose innovation has a squared Mahalanobis distance above this are rejected
         (chi-square, 3 dof; 21.1 is the 99.99 % point).
     glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
         glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5).
     protect_glass: cells with p(glass) above glass_protect_p are not cleared by beams passing through.
-    integrate: integrate each scan into the occupancy grid at the corrected pose.
+    integrate: integrate each key scan into the occupancy grid at the corrected pose.
     subcell_walls: keep the mean end-point position per cell (layers ``pose_hit_*``) and measure the
         likelihood field's distances to it rather than to cell centres (see LikelihoodField.rebuild).
     map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
@@ -70,6 +79,9 @@ class EstimatorConfig:
     occupancy: OccupancyParams = dc_field(default_factory=OccupancyParams)
     range_sigma: float = 0.01
     range_sigma_per_m: float = 0.001
+    keyframe_distance: float = 0.05
+    keyframe_angle: float = float(np.radians(2.0))
+    keyframe_max_scans: int = 20
     field_refresh_scans: int = 10
     gate_chi2: float = 21.1
     glass_weighting: bool = False
@@ -80,12 +92,21 @@ class EstimatorConfig:
     map_uncertainty: bool = True
     subcell_walls: bool = True
 
+    def __post_init__(self) -> None:
+        if self.keyframe_distance < 0 or self.keyframe_angle < 0 or self.keyframe_max_scans < 0:
+            raise ValueError("keyframe_distance (m), keyframe_angle (rad) and keyframe_max_scans must be >= 0, got "
+                             f"{self.keyframe_distance}, {self.keyframe_angle}, {self.keyframe_max_scans}")
+        if self.field_refresh_scans < 1:
+            raise ValueError(f"field_refresh_scans must be >= 1, got {self.field_refresh_scans}")
+
 
 @dataclass
 class EstimatorStats:
     """Counters and timings (s) of the last scan and totals."""
 
     scans: int = 0
+    keyframes: int = 0  # scans that were matched against the map and integrated (motion filter passed)
+    last_keyframe: bool = False  # whether the last scan was a key scan
     matched: int = 0
     no_match: int = 0
     gated: int = 0
@@ -127,6 +148,8 @@ class PoseEstimator:
         self._last_odom: np.ndarray | None = None
         self._last_stamp: float | None = None
         self._since_rebuild = 0
+        self._key_pose: np.ndarray | None = None  # EKF pose (map frame) at the last key scan
+        self._since_key = 0
         self.map_var = np.zeros(2)  # (xy m^2, yaw rad^2) of the map region matched last
         if config.subcell_walls:
             for name in HIT_LAYERS:
@@ -146,8 +169,19 @@ class PoseEstimator:
         :meth:`update` at the scan's time."""
         self.odometry.add(odom)
 
+    def is_keyframe_due(self) -> bool:
+        """Whether the scan being updated (after prediction) passes the motion filter (see EstimatorConfig)."""
+        cfg = self.config
+        if self._key_pose is None:
+            return True
+        if cfg.keyframe_max_scans > 0 and self._since_key >= cfg.keyframe_max_scans:
+            return True
+        d = relative(self._key_pose, self.ekf.pose)
+        return bool(np.hypot(d[0], d[1]) >= cfg.keyframe_distance or abs(d[2]) >= cfg.keyframe_angle)
+
     def update(self, scan: Scan) -> PoseEstimate:
-        """Estimate the base pose at ``scan.stamp``, fuse the scan match, integrate the scan; never raises
+        """Estimate the base pose at ``scan.stamp``; on a key scan (motion filter, see EstimatorConfig) also
+        fuse the scan match and integrate the scan (``stats.last_keyframe`` tells which); never raises
         on bad scan contents (no beams, all max range, NaN): it then falls back to odometry, whose
         covariance keeps growing. A non-finite stamp is a ValueError."""
         cfg = self.config
@@ -167,19 +201,24 @@ class PoseEstimator:
         self._last_stamp = stamp
         self.ekf.predict(delta, cfg.motion.covariance(delta, dt))
         t_pred = time.perf_counter() - t0
-
-        # ---- likelihood field (rebuilt every few scans; timed separately)
-        t1 = time.perf_counter()
+        self._since_key += 1
+        key = self.is_keyframe_due()
+        st.last_keyframe = key
         st.t_field = 0.0
-        self._since_rebuild += 1
+        if not key:
+            if self._since_rebuild >= cfg.field_refresh_scans:
+                # a periodic refresh that is due runs here, between key scans, not on the next key scan
+                self._rebuild_field()
+            st.t_core, st.t_integrate, st.last_match = t_pred, 0.0, None
+            st.scans += 1
+            return self.estimate(stamp)
+        self._since_key = 0
+        st.keyframes += 1
+
+        # ---- likelihood field (rebuilt every few key scans or when needed; timed separately)
         if (self._since_rebuild >= cfg.field_refresh_scans
                 or self.field.needs_rebuild(self.occupancy, self.ekf.pose[:2], cfg.matcher.range_max * 0.25 + 1.0)):
-            g = self.occupancy.grid
-            pts_layers = tuple(g[n] for n in HIT_LAYERS) if cfg.subcell_walls else None
-            self.field.rebuild(self.occupancy, self.ekf.pose[:2], pts_layers)
-            self._since_rebuild = 0
-            st.field_rebuilds += 1
-            st.t_field = time.perf_counter() - t1
+            self._rebuild_field()
 
         # ---- matching + fusion
         t2 = time.perf_counter()
@@ -226,8 +265,20 @@ class PoseEstimator:
             if cfg.subcell_walls:
                 self._store_hits(angles, ranges, scan.geometry.range_max)
         st.t_integrate = time.perf_counter() - t3
+        self._key_pose = self.ekf.pose.copy()
+        self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)
+
+    def _rebuild_field(self) -> None:
+        """Rebuild the likelihood field around the current pose (time in ``stats.t_field``)."""
+        t = time.perf_counter()
+        g = self.occupancy.grid
+        pts_layers = tuple(g[n] for n in HIT_LAYERS) if self.config.subcell_walls else None
+        self.field.rebuild(self.occupancy, self.ekf.pose[:2], pts_layers)
+        self._since_rebuild = 0
+        self.stats.field_rebuilds += 1
+        self.stats.t_field = time.perf_counter() - t
 
     def _ensure_extent(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
         """Grow the grid to hold this scan (as OccupancyGrid.integrate would) so a protect mask fits."""

@@ -25,7 +25,8 @@ CHI2_3DOF_95 = 7.815
 class Trajectory:
     """Per-scan estimates of one run: stamps (S,), poses (S, 3) base in the map frame, covs (S, 3, 3),
     truth (S, 3), odom (S, 3) raw odometry mapped into the map frame from the true start pose,
-    t_core (S,) seconds of prediction + matching + covariance + fusion, t_field / t_integrate (S,)."""
+    t_core (S,) seconds of prediction + matching + covariance + fusion, t_field / t_integrate (S,), key (S,)
+    bool: key scans (matched and integrated; see EstimatorConfig.keyframe_*)."""
 
     stamps: np.ndarray
     poses: np.ndarray
@@ -38,6 +39,7 @@ class Trajectory:
     matched: int
     no_match: int
     gated: int
+    key: np.ndarray
 
 
 @dataclass
@@ -59,7 +61,9 @@ class RunMetrics:
     inside_95: float
     sigma_xy_mean: float
     matched_share: float
-    t_core_median_ms: float
+    t_core_median_ms: float  # over all scans
+    key_share: float  # share of key scans (motion filter)
+    t_core_key_median_ms: float  # over key scans only (prediction + matching + covariance + fusion)
     t_field_mean_ms: float
     t_integrate_mean_ms: float
 
@@ -90,6 +94,7 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     s = run.n_scans
     poses, covs = np.zeros((s, 3)), np.zeros((s, 3, 3))
     t_core, t_field, t_int = np.zeros(s), np.zeros(s), np.zeros(s)
+    key = np.zeros(s, dtype=bool)
     j = 0
     it = range(s)
     if progress:
@@ -106,13 +111,14 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
         e = est.update(scan)
         poses[i], covs[i] = e.pose, e.covariance
         st = est.stats
-        t_core[i], t_field[i], t_int[i] = st.t_core, st.t_field, st.t_integrate
+        t_core[i], t_field[i], t_int[i], key[i] = st.t_core, st.t_field, st.t_integrate, st.last_keyframe
         if on_scan is not None:
             on_scan(i, scan, e, est)
     odom_map = _odometry_in_map(run, start)
     traj = Trajectory(stamps=run.scan_stamps.copy(), poses=poses, covs=covs, truth=run.scan_true_poses.copy(),
                       odom=odom_map, t_core=t_core, t_field=t_field, t_integrate=t_int,
-                      matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated)
+                      matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated,
+                      key=key)
     return traj, est
 
 
@@ -171,6 +177,8 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         inside_95=float(np.mean(nees <= CHI2_3DOF_95)), sigma_xy_mean=float(sig.mean()),
         matched_share=float(traj.matched / max(s, 1)),
         t_core_median_ms=float(np.median(traj.t_core) * 1e3),
+        key_share=float(traj.key.mean()) if s else 0.0,
+        t_core_key_median_ms=float(np.median(traj.t_core[traj.key]) * 1e3) if traj.key.any() else 0.0,
         t_field_mean_ms=float(np.mean(traj.t_field) * 1e3),
         t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3))
 

@@ -88,20 +88,27 @@ class LikelihoodField:
         floor = np.float32(np.log(p.p_floor))
         field = np.full((y1 - y0 + 2 * pad, x1 - x0 + 2 * pad), floor, dtype=np.float32)
         if self.n_occupied:
-            # distances only matter up to ~3 sigma_hit: beyond, the floor dominates
+            # beyond cut (m) the Gaussian is negligible against the floor (< 1e-4 in log), so only the cells
+            # that close to a wall are computed; the rest keep the floor
+            cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
+            inner = field[pad:-pad, pad:-pad]
+            ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
+            ddy = ny - np.arange(y1 - y0, dtype=ny.dtype)[:, None]  # cells to the nearest occupied cell
+            ddx = nx - np.arange(x1 - x0, dtype=nx.dtype)[None, :]
+            cut_c = int(np.ceil(cut / res))
+            near = np.nonzero(ddx * ddx + ddy * ddy <= cut_c * cut_c)
+            ny, nx, ddy, ddx = ny[near], nx[near], ddy[near], ddx[near]
             if points is None:
-                d = ndimage.distance_transform_edt(~occ) * res
+                d = np.hypot(ddx, ddy) * res
             else:
-                _, (ny, nx) = ndimage.distance_transform_edt(~occ, return_indices=True)
                 sx, sy, cnt = (a[y0:y1, x0:x1] for a in points)
                 c = cnt[ny, nx]
                 has = c > 0
-                mx = np.where(has, sx[ny, nx] / np.where(has, c, 1), 0.5 * res)  # mean offset in the cell (m)
-                my = np.where(has, sy[ny, nx] / np.where(has, c, 1), 0.5 * res)
-                gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0]
-                d = np.hypot((nx - gx - 0.5) * res + mx, (ny - gy - 0.5) * res + my)
-            inner = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
-            field[pad:-pad, pad:-pad] = inner
+                cs = np.where(has, c, 1)
+                mx = np.where(has, sx[ny, nx] / cs, 0.5 * res)  # mean offset in the cell (m)
+                my = np.where(has, sy[ny, nx] / cs, 0.5 * res)
+                d = np.hypot((ddx - 0.5) * res + mx, (ddy - 0.5) * res + my)
+            inner[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
         f = p.coarse_factor
         coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
         self.fine, self.coarse = field.ravel(), coarse.ravel()

@@ -1,6 +1,8 @@
 """PoseEstimator: follows odometry when scans are useless, corrects biased odometry with scans, exposes
 the contract used by the glass mapper and the runtime."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,7 @@ def _scan(ranges, stamp):
 
 @pytest.mark.parametrize("kind", ["empty", "all_inf", "all_nan", "too_short"])
 def test_degenerate_scans_fall_back_to_odometry_with_growing_covariance(kind):
-    est = PoseEstimator()
+    est = PoseEstimator(EstimatorConfig(keyframe_distance=0.0, keyframe_angle=0.0))  # every scan is a key scan
     n = GEOM.n_beams
     bad = {"empty": np.zeros(0), "all_inf": np.full(n, np.inf), "all_nan": np.full(n, np.nan),
            "too_short": np.full(n, 0.01)}[kind]
@@ -62,7 +64,9 @@ def test_scans_correct_biased_odometry_in_a_room():
         e = est.update(make_scan(segs, compose(true, mount), stamp=t, noise=0.01, rng=rng))
         errs.append(np.hypot(e.x - true[0], e.y - true[1]))
         odo_errs.append(np.hypot(*(compose(np.array([-1.5, -1.0, 0.0]), odom)[:2] - true[:2])))
-    assert est.stats.matched > 200
+    # 1 cm per scan: the motion filter (5 cm / 2 deg) makes about every 4th-5th scan a key scan; every scan
+    # still gets a pose (odometry between key scans)
+    assert 40 < est.stats.keyframes < 80 and est.stats.matched > 0.8 * est.stats.keyframes
     assert max(errs) < 0.02 and odo_errs[-1] > 0.07
     assert abs(float(e.yaw - true[2])) < np.radians(0.75)  # odometry: 5 % of 1.2 rad = 3.4 deg off
     assert abs(float(odom[2] - true[2])) > np.radians(3.0)
@@ -121,7 +125,8 @@ def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
     stays within 5 mm; measuring to cell centres drags it about a centimetre (kept as a reference)."""
     segs = np.array([[-3.013, -2.027, 3.011, -2.027], [3.011, -2.027, 3.011, 2.019],
                      [3.011, 2.019, -3.013, 2.019], [-3.013, 2.019, -3.013, -2.027]])
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1,
+                                        keyframe_distance=0.0, keyframe_angle=0.0))
     rng = np.random.default_rng(0)
     for k in range(15):
         e = est.update(make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng))
@@ -142,7 +147,8 @@ def test_without_integration_the_caller_updates_the_grid_and_matching_still_work
     """integrate=False (the glass mapper updates the shared grid): the estimator still keeps its per-cell
     bookkeeping and matches against what the caller integrated."""
     segs = room_with_corner()
-    est = PoseEstimator(EstimatorConfig(integrate=False, laser_mount=(0.0, 0.0, 0.0)))
+    est = PoseEstimator(EstimatorConfig(integrate=False, laser_mount=(0.0, 0.0, 0.0), keyframe_distance=0.0,
+                                        keyframe_angle=0.0))
     rng = np.random.default_rng(1)
     for k in range(30):
         est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
@@ -151,3 +157,40 @@ def test_without_integration_the_caller_updates_the_grid_and_matching_still_work
         est.occupancy.integrate(est.laser_pose(e), scan.angles, scan.ranges)  # what the mapper would do
     assert est.occupancy.grid["pose_hit_n"].sum() > 30 * 500
     assert est.stats.matched >= 15 and np.hypot(e.x, e.y) < 0.01  # the field is rebuilt every 10 scans
+
+
+def _standing_or_moving(cfg, step_m, n=40):
+    """n scans in the room, the robot advancing step_m per scan (odometry exact); returns the estimator and the
+    key-scan flags."""
+    segs = room_with_corner()
+    est = PoseEstimator(cfg)
+    rng = np.random.default_rng(5)
+    keys = []
+    for k in range(n):
+        x = -1.5 + step_m * k
+        est.predict(Odometry(stamp=0.025 * k, x=step_m * k, y=0.0, yaw=0.0))
+        est.update(make_scan(segs, np.array([x, -1.0, 0.0]), stamp=0.025 * k, noise=0.01, rng=rng))
+        keys.append(est.stats.last_keyframe)
+    return est, np.array(keys)
+
+
+def test_motion_filter_matches_and_integrates_only_key_scans():
+    cfg = EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), initial_pose=(-1.5, -1.0, 0.0), keyframe_distance=0.05,
+                          keyframe_angle=np.radians(2.0), keyframe_max_scans=15)
+    # standing still: the first scan, then one forced key scan every 15 scans
+    est, keys = _standing_or_moving(cfg, 0.0)
+    assert np.flatnonzero(keys).tolist() == [0, 15, 30]
+    assert est.stats.scans == 40 and est.stats.keyframes == 3
+    # only key scans reach the grid: 3 scans, every beam of the closed room ends on a wall
+    assert est.occupancy.grid["pose_hit_n"].sum() == 3 * GEOM.n_beams
+    # 2 cm per scan: a key scan every 3rd scan (6 cm >= 5 cm)
+    _, keys = _standing_or_moving(cfg, 0.02)
+    assert np.flatnonzero(keys).tolist() == list(range(0, 40, 3))
+    # the old behaviour: every scan is a key scan
+    est, keys = _standing_or_moving(replace(cfg, keyframe_distance=0.0, keyframe_angle=0.0), 0.0)
+    assert keys.all() and est.stats.keyframes == 40
+
+
+def test_bad_keyframe_settings_are_refused():
+    with pytest.raises(ValueError, match="keyframe"):
+        EstimatorConfig(keyframe_distance=-0.1)

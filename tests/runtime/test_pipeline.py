@@ -98,3 +98,32 @@ def test_bad_settings():
         ProcessingStage(Recorder(), queue_size=0)
     with pytest.raises(ValueError):
         ProcessingStage(Recorder(), max_scan_age=0)
+
+
+def test_processor_maps_occupancy_on_key_scans_only_and_the_glass_path_on_every_scan():
+    """Standing still with keyframe_max_scans = 5: scans 0, 5, 10 are key scans; only they clear free space
+    (the mapper's occupancy update), while every scan gets a pose and p(glass) per beam."""
+    import numpy as np
+
+    from glassmap.types import Odometry, Scan
+    from runtime.config import MappingConfig
+    from runtime.processor import MappingProcessor
+    from tests.pose.synth import make_scan as room_scan, room_with_corner
+
+    proc = MappingProcessor(MappingConfig(laser_x=0.0, initial_x=-1.5, initial_y=-1.0, keyframe_max_scans=5))
+    segs = room_with_corner()
+    rng = np.random.default_rng(0)
+    free_sums, keys = [], []
+    for k in range(12):
+        s = room_scan(segs, np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01, rng=rng)
+        scan = Scan(stamp=s.stamp, ranges=s.ranges, intensities=np.full(s.ranges.shape, 3000.0),
+                    geometry=s.geometry, seq=k)
+        res = proc.process(scan, [Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0)])
+        assert res.estimate is not None and np.isfinite(res.p_glass).any()
+        keys.append(proc.estimator.stats.last_keyframe)
+        lo = proc.mapper.occupancy.log_odds
+        free_sums.append(float(np.minimum(lo, 0.0).sum()))
+    assert np.flatnonzero(keys).tolist() == [0, 5, 10]
+    changed = np.flatnonzero(np.diff(free_sums) != 0) + 1
+    assert changed.tolist() == [5, 10]
+    assert proc.mapper.scans == 12 and proc.estimator.stats.scans == 12
