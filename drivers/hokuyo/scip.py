@@ -135,7 +135,7 @@ def encode_command(command: str, params: str = "", string: str = "") -> bytes:
     space and ``. _ + @`` (echoed back by the sensor). ValueError on anything else.
     """
     if not re.fullmatch(r"%?[A-Z]{2}", command):
-        raise ValueError(f"SCIP command must be 2 capital letters or %% + 2, got {command!r}")
+        raise ValueError(f"SCIP command must be 2 capital letters or % + 2, got {command!r}")
     if not re.fullmatch(r"[0-9]*", params):
         raise ValueError(f"SCIP parameters must be digits, got {params!r}")
     if not _STRING_RE.fullmatch(string.encode("ascii", "replace")):

@@ -27,7 +27,7 @@ def register(subparsers) -> None:
                        "sees only the odometry received before it) and report per run: absolute trajectory error "
                        "(RMSE, max) and final drift of the base position against the truth, the same for raw "
                        "wheel odometry, the yaw RMSE, and covariance consistency: mean NEES (3 dof; ideal 3) and "
-                       "the share of scans inside the 95 %% bound. Writes a CSV and a JSON summary.")
+                       "the share of scans inside the 95 % bound. Writes a CSV and a JSON summary.")
     e.add_argument("--worlds", default=",".join(DEFAULT_WORLDS),
                    help=f"comma-separated worlds (default: {','.join(DEFAULT_WORLDS)}; 'lobby' was not used "
                    "while tuning)")
