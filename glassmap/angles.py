@@ -134,31 +134,37 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
     """Iterative end-point fit on all runs at once; each iteration only touches the pieces that were split
     in the previous one. Returns the final start mask."""
     tol = p.split_tol + p.split_tol_rel * r
+    xs, ys = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
     is_start = starts_mask.copy()
-    active = np.ones(len(xy), dtype=bool)
+    pts = np.arange(len(xy))
+    min_pts = max(p.min_points, 3)
     for _ in range(p.max_split_iterations):
-        pts = np.flatnonzero(active)
         if pts.size == 0:
             break
         sub_start = is_start[pts]
         seg = np.cumsum(sub_start) - 1
         starts = np.flatnonzero(sub_start)
         ends = np.append(starts[1:], pts.size) - 1
-        x = xy[pts]
-        first, last = x[starts][seg], x[ends][seg]
-        d = last - first
-        length = np.hypot(d[:, 0], d[:, 1])
-        rel = x - first
-        cross = np.abs(d[:, 0] * rel[:, 1] - d[:, 1] * rel[:, 0])
-        dist = np.where(length > 1e-9, cross / np.maximum(length, 1e-9), np.hypot(rel[:, 0], rel[:, 1]))
+        x, y = xs[pts], ys[pts]
+        # per piece: first point and the chord to the last point, then per point its distance to the chord
+        fx, fy = x[starts], y[starts]
+        dx, dy = x[ends] - fx, y[ends] - fy
+        length = np.hypot(dx, dy)
+        degenerate = length <= 1e-9
+        inv = 1.0 / np.where(degenerate, 1.0, length)
+        rx, ry = x - fx[seg], y - fy[seg]
+        dist = np.abs(dx[seg] * ry - dy[seg] * rx) * inv[seg]
+        if degenerate.any():  # a closed piece: distance to its first point
+            dg = degenerate[seg]
+            dist[dg] = np.hypot(rx[dg], ry[dg])
         excess = dist - tol[pts]
         seg_max = np.maximum.reduceat(excess, starts)
         # a piece with fewer than min_points points cannot yield a segment: never split it
-        split_seg = (seg_max > 0) & (ends - starts + 1 >= max(p.min_points, 3))
-        active[pts] = split_seg[seg]
+        split_seg = (seg_max > 0) & (ends - starts + 1 >= min_pts)
         if not split_seg.any():
             break
-        cand = np.flatnonzero(split_seg[seg] & (excess == seg_max[seg]))
+        in_split = split_seg[seg]
+        cand = np.flatnonzero(in_split & (excess == seg_max[seg]))
         cs = seg[cand]
         first = np.ones(cand.size, dtype=bool)
         first[1:] = cs[1:] != cs[:-1]
@@ -167,6 +173,7 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
         if at.size == 0:
             break
         is_start[at] = True
+        pts = pts[in_split]
     return is_start
 
 
