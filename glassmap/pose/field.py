@@ -33,6 +33,31 @@ class FieldParams:
     coarse_factor: int = 4
 
 
+@dataclass(frozen=True)
+class FieldInputs:
+    """What a field rebuild reads from the grid: the occupied mask of the crop (None if the crop is empty),
+    the crop of the end-point layers, the crop centre (m), the grid generation and resolution, and the
+    map-frame corner of the crop (m)."""
+
+    occupied: np.ndarray | None
+    points: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    center: np.ndarray
+    generation: int
+    resolution: float
+    crop_origin: np.ndarray
+
+
+@dataclass(frozen=True)
+class FieldArrays:
+    """A computed field (flat fine and coarse arrays of ``shape``) and the snapshot it came from."""
+
+    inputs: FieldInputs
+    fine: np.ndarray | None
+    coarse: np.ndarray | None
+    shape: tuple[int, int]
+    n_occupied: int
+
+
 class LikelihoodField:
     """Fine and coarse (block-max) log-likelihood arrays over a crop of the occupancy grid.
 
@@ -67,7 +92,16 @@ class LikelihoodField:
         fell in each cell, offsets in metres from the cell's corner. Distances are then measured to the mean
         end point of the nearest occupied cell instead of its centre: a wall that does not lie on a cell
         centre is no longer moved by up to half a cell (which would bias matching by about a centimetre
-        and make the map creep as new walls come into view)."""
+        and make the map creep as new walls come into view).
+
+        Equivalent to ``install(compute(snapshot(...)))``; the estimator runs :meth:`compute` in a worker
+        thread (it touches no shared state) and installs the result at the next key scan."""
+        self.install(self.compute(self.snapshot(occupancy, center_xy, points)))
+
+    def snapshot(self, occupancy: OccupancyGrid, center_xy: np.ndarray,
+                 points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> FieldInputs:
+        """Copy what :meth:`compute` needs from the grid (the crop around ``center_xy``): cheap, and the grid
+        may change afterwards."""
         p = self.params
         g = occupancy.grid
         res = g.resolution
@@ -76,32 +110,38 @@ class LikelihoodField:
         cx, cy = g.world_to_cell(np.asarray(center_xy, dtype=np.float64))
         x0, x1 = max(cx - half, 0), min(cx + half + 1, w)
         y0, y1 = max(cy - half, 0), min(cy + half + 1, h)
-        self.center = np.asarray(center_xy, dtype=np.float64).copy()
-        self.generation = g.generation
-        self.resolution = res
-        if x1 <= x0 or y1 <= y0:
-            self.fine, self.coarse, self.n_occupied = None, None, 0
-            return
-        occ = occupancy.log_odds[y0:y1, x0:x1] > p.occupied_log_odds
-        self.n_occupied = int(occ.sum())
+        empty = x1 <= x0 or y1 <= y0
+        occ = None if empty else occupancy.log_odds[y0:y1, x0:x1] > p.occupied_log_odds
+        pts = None if (empty or points is None) else tuple(a[y0:y1, x0:x1].copy() for a in points)
+        return FieldInputs(occ, pts, np.asarray(center_xy, dtype=np.float64).copy(), g.generation, res,
+                           g.origin + np.array([x0, y0]) * res)
+
+    def compute(self, inputs: FieldInputs) -> FieldArrays:
+        """The field arrays of a snapshot (pure: no shared state, safe in a worker thread)."""
+        p = self.params
+        res = inputs.resolution
+        occ = inputs.occupied
+        if occ is None:
+            return FieldArrays(inputs, None, None, (0, 0), 0)
+        n_occupied = int(occ.sum())
         pad = p.pad
         floor = np.float32(np.log(p.p_floor))
-        field = np.full((y1 - y0 + 2 * pad, x1 - x0 + 2 * pad), floor, dtype=np.float32)
-        if self.n_occupied:
+        field = np.full((occ.shape[0] + 2 * pad, occ.shape[1] + 2 * pad), floor, dtype=np.float32)
+        if n_occupied:
             # beyond cut (m) the Gaussian is negligible against the floor (< 1e-4 in log), so only the cells
             # that close to a wall are computed; the rest keep the floor
             cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
             inner = field[pad:-pad, pad:-pad]
             ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
-            ddy = ny - np.arange(y1 - y0, dtype=ny.dtype)[:, None]  # cells to the nearest occupied cell
-            ddx = nx - np.arange(x1 - x0, dtype=nx.dtype)[None, :]
+            ddy = ny - np.arange(occ.shape[0], dtype=ny.dtype)[:, None]  # cells to the nearest occupied cell
+            ddx = nx - np.arange(occ.shape[1], dtype=nx.dtype)[None, :]
             cut_c = int(np.ceil(cut / res))
             near = np.nonzero(ddx * ddx + ddy * ddy <= cut_c * cut_c)
             ny, nx, ddy, ddx = ny[near], nx[near], ddy[near], ddx[near]
-            if points is None:
+            if inputs.points is None:
                 d = np.hypot(ddx, ddy) * res
             else:
-                sx, sy, cnt = (a[y0:y1, x0:x1] for a in points)
+                sx, sy, cnt = inputs.points
                 c = cnt[ny, nx]
                 has = c > 0
                 cs = np.where(has, c, 1)
@@ -111,9 +151,18 @@ class LikelihoodField:
             inner[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
         f = p.coarse_factor
         coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
-        self.fine, self.coarse = field.ravel(), coarse.ravel()
-        self.shape = field.shape
-        self.origin = g.origin + (np.array([x0, y0]) - pad) * res
+        return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied)
+
+    def install(self, arrays: FieldArrays) -> None:
+        """Make computed arrays the current field."""
+        inputs = arrays.inputs
+        self.center = inputs.center
+        self.generation = inputs.generation
+        self.resolution = inputs.resolution
+        self.fine, self.coarse, self.n_occupied = arrays.fine, arrays.coarse, arrays.n_occupied
+        if arrays.fine is not None:
+            self.shape = arrays.shape
+            self.origin = inputs.crop_origin - self.params.pad * inputs.resolution
 
     def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
         """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of
