@@ -18,7 +18,7 @@ pytestmark = [pytest.mark.hardware, pytest.mark.timeout(60)]
 def laser_url(request):
     url = request.config.getoption("--laser-url", default=None) or os.environ.get("GLASSMAP_LASER_URL")
     if not url:
-        pytest.skip("no laser: pass --laser-url or set GLASSMAP_LASER_URL")
+        pytest.skip(reason="no laser: pass --laser-url or set GLASSMAP_LASER_URL")
     return url
 
 

@@ -246,7 +246,7 @@ def test_real_devices_short_run(tmp_path):
     is not moved (motors stay disabled)."""
     laser, base = os.environ.get("GLASSMAP_LASER_URL"), os.environ.get("GLASSMAP_BASE_URL")
     if not laser or not base:
-        pytest.skip("set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL to run against real devices")
+        pytest.skip(reason="set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL to run against real devices")
     cfg = RuntimeConfig(laser_url=laser, base_url=base)
     cfg.output.out_dir = str(tmp_path)
     cfg.output.record = str(tmp_path / "real.mcap")
