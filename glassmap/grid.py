@@ -149,24 +149,12 @@ class OccupancyGrid:
         returns it; the callable is evaluated after the grid has grown to hold this scan. Returns the
         number of beams used.
         """
-        angles = np.asarray(angles, dtype=np.float64)
-        ranges = np.asarray(ranges, dtype=np.float64)
-        if angles.shape != ranges.shape:
-            raise ValueError(f"angles {angles.shape} and ranges {ranges.shape} differ in shape")
-        pose = np.asarray(laser_pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"laser_pose must be 3 finite numbers, got {laser_pose!r}")
-        p = self.params
-        hit = np.isfinite(ranges) & (ranges <= range_max)
-        clear = hit | (np.isposinf(ranges) & (p.no_return_range > 0))
+        pose, angles, ranges, hit, clear, free_len, c, s = self._scan_geometry(laser_pose, angles, ranges,
+                                                                               range_max)
         if not clear.any():
             return 0
-        free_len = np.where(hit, ranges.clip(0.0, p.max_free_range), p.no_return_range)
-        c, s = np.cos(pose[2] + angles), np.sin(pose[2] + angles)
-        ends = pose[:2] + np.stack([c, s], axis=1) * np.where(hit, ranges, 0.0)[:, None]
-        reach = pose[:2] + np.stack([c, s], axis=1) * free_len[:, None]
-        pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
-        self.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
+        p = self.params
+        ends = self._grow_for(pose, ranges, hit, clear, free_len, c, s)
         g = self.grid
         w = g.shape[1]
 
@@ -201,6 +189,44 @@ class OccupancyGrid:
             lo.ravel()[hflat] += p.l_occ
         np.clip(lo, p.l_min, p.l_max, out=lo)
         return int(clear.sum())
+
+    def ensure_scan_extent(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
+                           range_max: float = 30.0) -> bool:
+        """Grow the grid to everything :meth:`integrate` would touch for this scan (same arguments), e.g.
+        before writing per-end-point layers. Returns True if it grew."""
+        pose, _, ranges, hit, clear, free_len, c, s = self._scan_geometry(laser_pose, angles, ranges, range_max)
+        if not clear.any():
+            return False
+        generation = self.grid.generation
+        self._grow_for(pose, ranges, hit, clear, free_len, c, s)
+        return self.grid.generation != generation
+
+    def _scan_geometry(self, laser_pose, angles, ranges, range_max):
+        """Validated arrays of one scan: pose, angles, ranges, beams with a hit, beams that clear space, how
+        far each clears (m), and the beam directions (cos, sin) in the map frame."""
+        angles = np.asarray(angles, dtype=np.float64)
+        ranges = np.asarray(ranges, dtype=np.float64)
+        if angles.shape != ranges.shape:
+            raise ValueError(f"angles {angles.shape} and ranges {ranges.shape} differ in shape")
+        pose = np.asarray(laser_pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"laser_pose must be 3 finite numbers, got {laser_pose!r}")
+        p = self.params
+        with np.errstate(invalid="ignore"):
+            hit = np.isfinite(ranges) & (ranges <= range_max)
+        clear = hit | (np.isposinf(ranges) & (p.no_return_range > 0))
+        free_len = np.where(hit, ranges.clip(0.0, p.max_free_range), p.no_return_range)
+        return pose, angles, ranges, hit, clear, free_len, np.cos(pose[2] + angles), np.sin(pose[2] + angles)
+
+    def _grow_for(self, pose, ranges, hit, clear, free_len, c, s) -> np.ndarray:
+        """Grow the grid to the box of the scan's end points and cleared space (1 m margin); returns the
+        map-frame end points (n, 2) (the laser position for beams without a hit)."""
+        u = np.stack([c, s], axis=1)
+        ends = pose[:2] + u * np.where(hit, ranges, 0.0)[:, None]
+        reach = pose[:2] + u * free_len[:, None]
+        pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
+        self.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
+        return ends
 
     def save_pgm_yaml(self, stem: str) -> tuple[str, str]:
         """Write ``stem.pgm`` + ``stem.yaml`` in the ROS map_server format (trinary, 254 free, 0 occupied,

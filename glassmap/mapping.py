@@ -188,11 +188,9 @@ class GlassMapper:
 
     def integrate(self, scan: Scan, pose: np.ndarray) -> None:
         """Occupancy update of one scan at the laser pose (map frame) with the configured protection."""
-        if self.config.protect != "none":
-            # grow the grid first, as integrate() would, so that the mask has the grid's final shape
-            self._ensure_scan_extent(scan, pose)
+        # the mask is taken after integrate() has grown the grid to hold the scan
         self.occupancy.integrate(pose, scan.angles, scan.ranges, scan.geometry.range_max,
-                                 protect=self.protect_mask())
+                                 protect=self.protect_mask)
 
     def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray) -> int:
         """For beams classified as glass (p > glass_hit_threshold): raise the occupancy log-odds of their
@@ -215,19 +213,6 @@ class GlassMapper:
         if self.config.protect == "hits":
             self.grid[self.hits_layer].reshape(-1)[flat] = True
         return int(sel.sum())
-
-    def _ensure_scan_extent(self, scan: Scan, pose: np.ndarray) -> None:
-        """Grow the grid to everything OccupancyGrid.integrate will touch for this scan (same box)."""
-        p = self.occupancy.params
-        r = scan.ranges
-        with np.errstate(invalid="ignore"):
-            hit = np.isfinite(r) & (r <= scan.geometry.range_max)
-            reach = np.where(hit, r, np.where(np.isposinf(r), p.max_free_range, 0.0))
-        ang = pose[2] + scan.angles
-        xy = pose[:2] + np.stack([np.cos(ang), np.sin(ang)], axis=1) * reach[:, None]
-        lo = np.minimum(xy.min(axis=0), pose[:2]) - 1.0
-        hi = np.maximum(xy.max(axis=0), pose[:2]) + 1.0
-        self.grid.ensure_contains(lo, hi)
 
     # -- the per-scan path ---------------------------------------------------------------------------------
     def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,

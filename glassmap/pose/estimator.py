@@ -257,17 +257,19 @@ class PoseEstimator:
         # ---- map update at the corrected pose
         t3 = time.perf_counter()
         if cfg.integrate and ranges.size:
-            protect = None
-            if cfg.protect_glass or self.protect_mask_fn is not None:
-                self._ensure_extent(angles, ranges, scan.geometry.range_max)
-                protect = self.protect_mask_fn() if self.protect_mask_fn is not None else self.glass_protect_mask()
+            protect = None  # a callable: evaluated after integrate() has grown the grid to hold the scan
+            if self.protect_mask_fn is not None:
+                protect = self.protect_mask_fn
+            elif cfg.protect_glass:
+                protect = self.glass_protect_mask
             self.occupancy.integrate(self.laser_pose_of(self.ekf.pose), angles, ranges,
                                      scan.geometry.range_max, protect=protect)
         if ranges.size and (cfg.map_uncertainty or cfg.subcell_walls):
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
             if not cfg.integrate:
-                self._ensure_extent(angles, ranges, scan.geometry.range_max)
+                self.occupancy.ensure_scan_extent(self.laser_pose_of(self.ekf.pose), angles, ranges,
+                                                  scan.geometry.range_max)
             if cfg.map_uncertainty:
                 self._store_map_variance(angles, ranges, scan.geometry.range_max)
             if cfg.subcell_walls:
@@ -308,16 +310,6 @@ class PoseEstimator:
         state = dict(self.__dict__)
         state["_executor"] = None
         return state
-
-    def _ensure_extent(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
-        """Grow the grid to hold this scan (as OccupancyGrid.integrate would) so a protect mask fits."""
-        lp = self.laser_pose_of(self.ekf.pose)
-        p = self.occupancy.params
-        hit = np.isfinite(ranges) & (ranges <= range_max)
-        reach = np.where(hit, ranges, np.where(np.isposinf(ranges), p.max_free_range, 0.0))
-        a = lp[2] + angles
-        pts = np.concatenate([lp[None, :2], lp[:2] + np.stack([reach * np.cos(a), reach * np.sin(a)], axis=1)])
-        self.occupancy.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
 
     def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
         """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls."""

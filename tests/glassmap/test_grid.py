@@ -102,3 +102,14 @@ def test_each_cell_is_updated_once_per_scan():
     angles = np.full(50, 0.0)  # fifty identical beams: one observation, not fifty
     occ.integrate(np.zeros(3), angles, np.full(50, 2.0))
     assert occ.log_odds.max() == pytest.approx(0.85) and occ.log_odds.min() == pytest.approx(-0.4)
+
+
+def test_ensure_scan_extent_grows_like_integrate():
+    a = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 20), grow_step_m=1.0))
+    b = OccupancyGrid(MapGrid(resolution=0.1, origin=(-1.0, -1.0), shape=(20, 20), grow_step_m=1.0))
+    angles, ranges = np.array([0.0, 2.0]), np.array([6.0, 3.0])
+    assert a.ensure_scan_extent(np.zeros(3), angles, ranges)
+    b.integrate(np.zeros(3), angles, ranges)
+    assert a.grid.shape == b.grid.shape and np.allclose(a.grid.origin, b.grid.origin)
+    assert (a.log_odds == 0).all()  # growing writes nothing
+    assert not a.ensure_scan_extent(np.zeros(3), angles, ranges)
