@@ -14,6 +14,7 @@ cells are (ix, iy) of a :class:`~glassmap.grid.MapGrid`, flat index ``iy * width
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -45,13 +46,16 @@ def decayed_probability(p: np.ndarray, dist: np.ndarray, sigma: np.ndarray) -> n
     return (p - 0.5) * w + 0.5
 
 
+@functools.lru_cache(maxsize=8)
 def window_offsets(k: int) -> np.ndarray:
-    """(k*k, 2) integer (dx, dy) offsets of a k x k window centred on (0, 0); k odd."""
+    """(k*k, 2) integer (dx, dy) offsets of a k x k window centred on (0, 0); k odd. Read-only (cached)."""
     if k < 1 or k % 2 == 0:
         raise ValueError(f"window size k must be a positive odd number (3 or 5), got {k}")
     h = k // 2
     dy, dx = np.mgrid[-h:h + 1, -h:h + 1]
-    return np.stack([dx.ravel(), dy.ravel()], axis=1).astype(np.int64)
+    offs = np.stack([dx.ravel(), dy.ravel()], axis=1).astype(np.int64)
+    offs.flags.writeable = False
+    return offs
 
 
 def _inside(cells: np.ndarray, shape: tuple[int, int], margin: int) -> np.ndarray:
