@@ -243,7 +243,7 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
             default = getattr(obj, f.name)
             group.add_argument(f"--{section}.{f.name}", dest=f"cfg__{section}__{f.name}", default=None,
                                metavar="BOOL" if typ is bool else typ.__name__.upper(),
-                               help=f"{f.metadata.get('help', '')} (default: {default!r})")
+                               help=f"{f.metadata.get('help', '')} (default: {default!r})".replace("%", "%%"))
 
 
 def config_from_args(args: argparse.Namespace, base: RuntimeConfig | None = None) -> RuntimeConfig:

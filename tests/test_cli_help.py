@@ -1,0 +1,35 @@
+"""Every ``glassmap`` command and sub-command prints its --help (argparse formats help strings lazily, so a
+stray '%' in one only fails when that help is printed)."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from glassmap.cli import build_parser
+
+
+def _parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+def test_every_help_formats():
+    seen = []
+    for path, parser in _parsers(build_parser()):
+        text = parser.format_help()
+        assert "usage:" in text, path
+        seen.append(" ".join(path))
+    assert {"demo", "run", "replay", "bench", "pose eval", "sim bench"} <= set(seen)
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["demo", "--help"]])
+def test_help_exits_zero(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(argv)
+    assert e.value.code == 0
+    assert "usage:" in capsys.readouterr().out
