@@ -42,12 +42,8 @@ class MappingProcessor:
     def __init__(self, mapping: MappingConfig, *, estimator_config=None, mapper_config=None) -> None:
         from dataclasses import replace
 
-        import torch
-
         from glassmap.mapping import GlassMapper, MapperConfig
         from glassmap.pose import EstimatorConfig, PoseEstimator
-
-        torch.set_num_threads(1)  # one small batch per scan: extra threads only add overhead
 
         ecfg = estimator_config or EstimatorConfig()
         ecfg = replace(ecfg, laser_mount=(mapping.laser_x, mapping.laser_y, mapping.laser_yaw),

@@ -216,12 +216,6 @@ class ReplayJob:
 
 
 def _run_job(job: ReplayJob) -> ReplayResult:
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-    except ImportError:
-        pass
     res = replay_file(job.path, job.config, source=job.source, out_dir=job.out_dir, stem=job.stem,
                       progress=False, world=job.world)
     if hasattr(res, "_processor"):
