@@ -50,6 +50,22 @@ class MapGrid:
     def layer_names(self) -> list[str]:
         return list(self._layers)
 
+    def copy(self, layers: list[str] | None = None) -> "MapGrid":
+        """An independent copy of the geometry and of ``layers`` (default: all), e.g. to export or score
+        the maps in another thread while this grid keeps changing."""
+        names = self.layer_names if layers is None else list(layers)
+        missing = [n for n in names if n not in self._layers]
+        if missing:
+            raise ValueError(f"no layer(s) {missing} in the grid (layers: {self.layer_names})")
+        out = MapGrid(self.resolution, (float(self.origin[0]), float(self.origin[1])), (0, 0),
+                      self.grow_step * self.resolution)
+        out.shape = self.shape
+        out.generation = self.generation
+        for n in names:
+            out._layers[n] = self._layers[n].copy()
+            out._fills[n] = self._fills[n]
+        return out
+
     def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
         """Map-frame points (..., 2) in metres -> integer cells (..., 2) as (ix, iy); may lie outside."""
         return np.floor((np.asarray(xy) - self.origin) / self.resolution).astype(np.int64)

@@ -256,6 +256,12 @@ class GlassMapper:
         return beams
 
     # -- outputs -------------------------------------------------------------------------------------------
+    def copy_maps(self) -> "GlassMapper":
+        """A mapper holding copies of the occupancy and glass layers (same settings, shared classifier), to
+        export or score in another thread while this one keeps mapping. Costs a copy of two layers."""
+        grid = self.grid.copy([OccupancyGrid.LAYER, self.config.layer])
+        return GlassMapper(OccupancyGrid(grid, self.occupancy.params), self.config, classifier=self.classifier)
+
     def confidence_map(self) -> np.ndarray:
         """(H, W) float32 p(glass) on occupied cells, NaN elsewhere."""
         return self.glass.confidence_map(self.occupancy)

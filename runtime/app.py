@@ -26,7 +26,7 @@ from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
 from runtime.pipeline import ProcessingStage, ScanResult
-from runtime.processor import MappingProcessor
+from runtime.processor import MappingProcessor, MapSnapshot
 from runtime.recorder import McapRecorder
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
@@ -153,6 +153,7 @@ class Runtime:
         failure: BaseException | None = None
         try:
             with handle_signals(stop):
+                await self.stage.call(self.processor.warm_up)  # before the devices: first scans not delayed
                 await self._connect()
                 tasks = [asyncio.create_task(self._laser_task(), name="laser"),
                          asyncio.create_task(self.stage.run(), name="processing"),
@@ -267,20 +268,29 @@ class Runtime:
         while True:
             await asyncio.sleep(max(0.05, min(next_export, next_pub) - time.monotonic()))
             now = time.monotonic()
-            if now >= next_pub and self.sink is not None and self.latest is not None:
-                snap = await self.stage.call(self.processor.snapshot)
-                self.sink.maps(time.monotonic(), snap.occupancy_p, snap.confidence, snap.origin, snap.resolution)
+            publish, export = now >= next_pub, now >= next_export
+            if publish:
                 next_pub = now + out.map_publish_period
-            elif now >= next_pub:
-                next_pub = now + out.map_publish_period
-            if now >= next_export and self.latest is not None:
+            if export:
+                next_export = now + out.export_period
+            if self.latest is None or not ((publish and self.sink is not None) or export):
+                continue
+            # copy the maps in the processing thread (between two scans), convert and write them elsewhere
+            maps = await self.stage.call(self.processor.copy_maps)
+            if publish and self.sink is not None:
+                await self._publish_maps(maps)
+            if export:
                 try:
-                    self.summary.exports = await self.stage.call(self.processor.export, out.out_dir,
-                                                                 self.export_stem)
+                    self.summary.exports = await asyncio.to_thread(maps.export, out.out_dir, self.export_stem)
                     log.info("maps exported to %s", out.out_dir)
                 except OSError as exc:  # keep mapping (and the robot safe); say why the files are not there
                     log.error("map export to %s failed: %s", out.out_dir, exc)
-                next_export = now + out.export_period
+
+    async def _publish_maps(self, maps) -> None:
+        """/map and /glass/map from a copy of the maps (converted outside the event loop)."""
+        t = time.monotonic()
+        snap = await asyncio.to_thread(MapSnapshot.of, maps)
+        self.sink.maps(t, snap.occupancy_p, snap.confidence, snap.origin, snap.resolution)
 
     async def _shutdown(self, tasks: list[asyncio.Task], stopper: asyncio.Task) -> None:
         """Cancel the driver (no further commands), stop the robot, then cancel the device and export tasks."""
@@ -314,11 +324,10 @@ class Runtime:
         if self.latest is not None:
             try:
                 out = self.config.output
-                snap = await self.stage.call(self.processor.snapshot)
+                maps = await self.stage.call(self.processor.copy_maps)
                 if self.sink is not None:
-                    self.sink.maps(time.monotonic(), snap.occupancy_p, snap.confidence, snap.origin,
-                                   snap.resolution)
-                self.summary.exports = await self.stage.call(self.processor.export, out.out_dir, self.export_stem)
+                    await self._publish_maps(maps)
+                self.summary.exports = await asyncio.to_thread(maps.export, out.out_dir, self.export_stem)
             except Exception as exc:
                 log.error("final map export failed: %s", exc)
 

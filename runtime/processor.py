@@ -26,6 +26,13 @@ class MapSnapshot:
     origin: tuple[float, float]
     resolution: float
 
+    @classmethod
+    def of(cls, mapper) -> "MapSnapshot":
+        """From a :class:`~glassmap.mapping.GlassMapper` (typically a :meth:`MappingProcessor.copy_maps`)."""
+        g = mapper.grid
+        return cls(occupancy_p=mapper.occupancy.probability(), confidence=mapper.confidence_map(),
+                   origin=(float(g.origin[0]), float(g.origin[1])), resolution=float(g.resolution))
+
 
 class MappingProcessor:
     """PoseEstimator (odometry + scan matching) then GlassMapper on the same occupancy grid.
@@ -64,6 +71,18 @@ class MappingProcessor:
         self.latest_odom: Odometry | None = None
         self.scans = 0
 
+    def warm_up(self) -> None:
+        """Run the glass classification once on a synthetic scan (a room of 4 x 6 m), without touching the
+        maps or the pose: the first torch call and the first pass through the numpy code cost tens of
+        milliseconds, which would otherwise delay the first real scans."""
+        from glassmap.types import LaserGeometry
+
+        geo = LaserGeometry()
+        a = geo.angles
+        with np.errstate(divide="ignore"):
+            r = np.minimum(np.abs(2.0 / np.sin(a)), np.abs(3.0 / np.cos(a)))
+        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo))
+
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:
         c0 = time.thread_time()
         t0 = time.perf_counter()
@@ -85,11 +104,11 @@ class MappingProcessor:
         return ScanResult(scan=scan, estimate=est, laser_pose=laser_pose, p_glass=beams.p_glass,
                           odom=self.latest_odom, timings=timings)
 
-    def snapshot(self) -> MapSnapshot:
-        occ = self.mapper.occupancy
-        g = self.mapper.grid
-        return MapSnapshot(occupancy_p=occ.probability().astype(np.float32), confidence=self.mapper.confidence_map(),
-                           origin=(float(g.origin[0]), float(g.origin[1])), resolution=float(g.resolution))
+    def copy_maps(self):
+        """Copies of the maps (a :class:`~glassmap.mapping.GlassMapper`) to publish or export in another thread:
+        the copy is a ~1 ms memcpy in the processing thread, the conversions and file writing (hundreds of
+        ms for a PNG) then do not hold up the scans."""
+        return self.mapper.copy_maps()
 
     def export(self, out_dir: str, stem: str = "glass_map") -> dict[str, str]:
         """Write PNG, .npy, PGM + YAML of the maps (see GlassMapper.export)."""

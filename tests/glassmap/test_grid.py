@@ -113,3 +113,17 @@ def test_ensure_scan_extent_grows_like_integrate():
     assert a.grid.shape == b.grid.shape and np.allclose(a.grid.origin, b.grid.origin)
     assert (a.log_odds == 0).all()  # growing writes nothing
     assert not a.ensure_scan_extent(np.zeros(3), angles, ranges)
+
+
+def test_copy_holds_the_chosen_layers_and_does_not_follow_changes():
+    g = MapGrid(resolution=0.1, origin=(0.0, 0.0), shape=(10, 10), grow_step_m=1.0)
+    g.add_layer("a", fill=0.0)
+    g.add_layer("b", fill=0.5)
+    c = g.copy(["a"])
+    assert c.layer_names == ["a"] and c.shape == g.shape and np.array_equal(c.origin, g.origin)
+    g["a"][0, 0] = 3.0
+    g.ensure_contains(np.array([-0.5, 0.0]), np.array([0.5, 0.5]))
+    assert c["a"][0, 0] == 0.0 and c.shape == (10, 10) and np.allclose(c.origin, [0.0, 0.0])
+    assert c.ensure_contains(np.array([-0.5, 0.0]), np.array([0.5, 0.5]))  # a copy grows on its own
+    with pytest.raises(ValueError, match="no layer"):
+        g.copy(["nope"])

@@ -180,3 +180,17 @@ def test_config_validation():
                 dict(protect="all"), dict(search_radius=-1)):
         with pytest.raises(ValueError):
             MapperConfig(**bad)
+
+
+def test_copy_maps_is_an_independent_copy_with_the_same_outputs(clf, tmp_path):
+    m = GlassMapper(config=MapperConfig(), classifier=clf)
+    m.process(box_scan(), POSE, 0.05)
+    copy = m.copy_maps()
+    conf = m.confidence_map()
+    assert np.array_equal(copy.confidence_map(), conf, equal_nan=True)
+    assert np.array_equal(copy.occupancy.probability(), m.occupancy.probability())
+    m.process(box_scan(), POSE, 0.05)  # keeps mapping: the copy does not change
+    assert np.array_equal(copy.confidence_map(), conf, equal_nan=True)
+    assert not np.array_equal(m.confidence_map(), conf, equal_nan=True)
+    paths = copy.export(str(tmp_path))
+    assert np.array_equal(np.load(paths["npy"]), conf, equal_nan=True)
