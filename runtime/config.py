@@ -241,7 +241,8 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
         for f in dataclasses.fields(obj):
             typ = _field_types(type(obj))[f.name]
             default = getattr(obj, f.name)
-            group.add_argument(f"--{section}.{f.name}", dest=f"cfg__{section}__{f.name}", default=None,
+            # SUPPRESS: unset flags leave no attribute (and no "(default: None)" in --help)
+            group.add_argument(f"--{section}.{f.name}", dest=f"cfg__{section}__{f.name}", default=argparse.SUPPRESS,
                                metavar="BOOL" if typ is bool else typ.__name__.upper(),
                                help=f"{f.metadata.get('help', '')} (default: {default!r})".replace("%", "%%"))
 
