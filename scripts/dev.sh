@@ -2,7 +2,7 @@
 # One entry point for newcomers and CI: sets up .venv (idempotent) and runs a job.
 #   scripts/dev.sh demo [ARGS...]   set up, then run the main demo (glassmap demo)
 #   scripts/dev.sh test [ARGS...]   set up, then run the default test suite (pytest)
-#   scripts/dev.sh slow [ARGS...]   set up, then run the slow / heavy tests (pytest -m slow)
+#   scripts/dev.sh slow [ARGS...]   set up (+ the dask extra), then run the slow / heavy tests (pytest -m slow)
 #   scripts/dev.sh setup            set up only
 #   scripts/dev.sh glassmap ARGS    set up, then run any glassmap subcommand
 set -euo pipefail
@@ -40,7 +40,9 @@ case "$cmd" in
   setup) setup ;;
   demo) setup; exec "$venv/bin/glassmap" demo "$@" ;;
   test) setup; exec "$venv/bin/python" -m pytest "$@" ;;
-  slow) setup; exec "$venv/bin/python" -m pytest -m slow "$@" ;;
+  slow) setup  # the slow suite also covers the optional Dask extra
+        "$venv/bin/python" -m pip install --quiet -e ".[test,dask]"
+        exec "$venv/bin/python" -m pytest -m slow "$@" ;;
   glassmap) setup; exec "$venv/bin/glassmap" "$@" ;;
   *) sed -n '2,8p' "$0"; exit 2 ;;
 esac

@@ -240,6 +240,22 @@ def test_many_replays_in_a_process_pool(demo):
     assert all(Path(r.exports["png"]).is_file() for r in results)
 
 
+@pytest.mark.slow
+def test_replays_on_a_dask_cluster(demo):
+    """The same jobs on a Dask cluster (a local one on 127.0.0.1), given its scheduler address; needs the
+    ``dask`` extra (``scripts/dev.sh slow`` installs it)."""
+    distributed = pytest.importorskip("distributed", reason="the dask extra: pip install -e '.[dask]'")
+    from runtime.replay import ReplayJob, recorded_config, replay_many
+
+    res, out = demo
+    jobs = [ReplayJob(res.recording, recorded_config(res.recording), out_dir=str(out / "dask"), stem="dask")]
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        results = replay_many(jobs, dask_address=cluster.scheduler_address, progress=False)
+    assert [r.scans for r in results] == [res.summary.scans_processed]
+    assert Path(results[0].exports["png"]).is_file()
+
+
 @pytest.mark.hardware
 def test_real_devices_short_run(tmp_path):
     """Against the real robot (opt-in): GLASSMAP_LASER_URL and GLASSMAP_BASE_URL name the devices. The robot
