@@ -61,6 +61,32 @@ def test_demo_drives_maps_records_and_scores(demo):
     assert res.evaluation is not None and 0.0 <= res.evaluation.error <= 1.0 and res.evaluation.n_cells > 100
 
 
+def test_recording_decodes_with_foxglove_ros2_decoder(demo):
+    """Foxglove's own ROS 2 support for MCAP (its ros2msg schema parser and CDR decoder, independent of
+    rosbags) decodes every message; the glass map is a foxglove_msgs/Grid with the colour fields Foxglove
+    paints and float32 p(glass)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    res, _ = demo
+    counts: dict[str, int] = {}
+    grid = None
+    with open(res.recording, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, _, msg in reader.iter_decoded_messages():
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == "/glass/map":
+                grid = msg
+    assert TOPICS <= set(counts)
+    assert grid is not None
+    assert [(f.name, f.offset, f.type) for f in grid.fields] == [("p_glass", 0, 7), ("red", 4, 1), ("green", 5, 1),
+                                                                  ("blue", 6, 1), ("alpha", 7, 1)]
+    assert grid.cell_stride == 8 and grid.row_stride == 8 * grid.column_count
+    assert len(grid.data) % grid.row_stride == 0 and grid.cell_size.x == pytest.approx(0.05)
+
+
 def test_recording_opens_with_anyreader_and_has_every_topic(demo):
     res, _ = demo
     with AnyReader([Path(res.recording)]) as reader:
