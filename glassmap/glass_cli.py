@@ -49,6 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "robust3-plain"]))
     p.add_argument("--max-free-range", type=float, default=10.0,
                    help="m a beam clears in the occupancy update (default 10; the grid default is 20)")
+    p.add_argument("--map-poses", choices=["truth", "estimate"], default="truth",
+                   help="poses the shared occupancy grid is built from: 'truth' (default; a consistent map, as "
+                   "a SLAM back end gives, with only the robot's pose against it uncertain) or 'estimate' "
+                   "(the registration's noisy poses, which also smear the walls of the occupancy grid)")
     p.add_argument("--sweep", action="store_true", help="also sweep sigma_xy over --sweep-sigmas")
     p.add_argument("--sweep-sigmas", default="0,0.01,0.02,0.05,0.10", help="sigma_xy values (m) of the sweep")
     p.add_argument("--sweep-trials", type=int, default=10, help="trials per sigma in the sweep (default 10)")
@@ -81,6 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/map")
     p.add_argument("--stem", default="glass_map")
+    p.add_argument("--map-poses", choices=["truth", "estimate"], default="truth",
+                   help="poses the occupancy grid is built from (see `glassmap eval --help`; default truth)")
     p.set_defaults(func=cmd_map)
 
     p = sub.add_parser("bench-glass", help="time of the per-scan glass path on one core",
@@ -130,7 +136,8 @@ def cmd_eval(args) -> int:
     try:
         cfg = TrialConfig(world=args.world, route=args.route, duration=args.duration, scan_rate=args.scan_rate,
                           pose_error=PoseErrorModel(args.sigma_xy, args.sigma_theta, args.tau),
-                          sigma_mode=args.sigma_mode, methods=methods, max_free_range=args.max_free_range)
+                          sigma_mode=args.sigma_mode, methods=methods, max_free_range=args.max_free_range,
+                          map_poses=args.map_poses)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -140,7 +147,7 @@ def cmd_eval(args) -> int:
     rows = rows_of(run_trials(cfg, seeds, args.workers))
     csv_path = write_csv(os.path.join(args.out, "trials.csv"), rows)
     title = (f"{args.world}, {args.trials} trials, sigma_xy {args.sigma_xy * 100:.0f} cm, "
-             f"sigma_theta {math.degrees(args.sigma_theta):.2f} deg")
+             f"sigma_theta {math.degrees(args.sigma_theta):.2f} deg, map from {args.map_poses} poses")
     png = box_plot(os.path.join(args.out, "boxplot.png"), rows, title)
     summary = summarise(rows)
     print(format_summary(summary, title))
@@ -229,9 +236,11 @@ def cmd_map(args) -> int:
         mapper = GlassMapper(None, MapperConfig(**METHODS[args.method]))
         for j, i in enumerate(tqdm(idx, desc="mapping", unit="scan")):
             scan = run.scan(int(i))
-            mapper.process(scan, est[j], pe.beam_sigma(scan.ranges))
+            occ_pose = run.laser_poses[i] if args.map_poses == "truth" else est[j]
+            mapper.process(scan, est[j], pe.beam_sigma(scan.ranges), occupancy_pose=occ_pose)
     else:
-        cfg = TrialConfig(world=args.world, scan_rate=args.scan_rate, pose_error=pe, duration=args.duration)
+        cfg = TrialConfig(world=args.world, scan_rate=args.scan_rate, pose_error=pe, duration=args.duration,
+                          map_poses=args.map_poses)
         mapper = build_maps_for_export(cfg, args.seed, args.method)
     paths = mapper.export(args.out, args.stem)
     for k, v in paths.items():

@@ -216,20 +216,19 @@ class GlassMapper:
 
     # -- the per-scan path ---------------------------------------------------------------------------------
     def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,
-                update_occupancy: bool = True) -> BeamGlass:
+                update_occupancy: bool = True, occupancy_pose: np.ndarray | None = None) -> BeamGlass:
         """One scan: incidence angles, p(glass) (one batched torch call), occupancy update (unless the caller
         did it already: ``update_occupancy=False``), registration and Bayesian update.
 
         laser_pose: (3,) laser (x, y, yaw) in the map frame (m, rad). sigma: registration sigma (m), scalar or
-        per beam (n,). Raises :class:`MappingInputError` for a bad pose or sigma (nothing is changed);
-        beams with NaN range / intensity or NaN sigma are skipped and counted in ``n_bad``.
+        per beam (n,). occupancy_pose: the laser pose for the occupancy update and the glass hits it keeps
+        (default ``laser_pose``; the experiment builds a consistent map from the true poses this way while
+        registering at the estimated ones). Raises :class:`MappingInputError` for a bad pose or sigma
+        (nothing is changed); beams with NaN range / intensity or NaN sigma are skipped and counted in
+        ``n_bad``.
         """
-        pose = np.asarray(laser_pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
-            raise MappingInputError(f"laser_pose must be 3 finite numbers (x m, y m, yaw rad), got {laser_pose!r}")
-        if np.any(np.abs(pose[:2]) > MAX_ABS_COORD):
-            raise MappingInputError(f"laser pose {pose[:2]} m is more than {MAX_ABS_COORD:.0f} m from the map "
-                                    "origin; refusing to grow the map that far (check the pose source)")
+        pose = self._checked_pose(laser_pose)
+        occ_pose = pose if occupancy_pose is None else self._checked_pose(occupancy_pose)
         n = scan.ranges.shape[0]
         sig = np.asarray(sigma, dtype=np.float64)
         if sig.ndim == 0:
@@ -247,13 +246,23 @@ class GlassMapper:
         beams.n_bad += int((bad_sigma & use).sum())
         use &= ~bad_sigma
         if update_occupancy:
-            self.integrate(scan, pose)
+            self.integrate(scan, occ_pose)
         if self.config.glass_hits_occupy or self.config.protect == "hits":
-            self.mark_glass_hits(beams, use, scan, pose)
+            self.mark_glass_hits(beams, use, scan, occ_pose)
         beams.n_registered = self.register(beams, use, scan, pose, sig)
         if beams.n_ranged == 0:
             self.skipped_scans += 1
         return beams
+
+    @staticmethod
+    def _checked_pose(laser_pose) -> np.ndarray:
+        pose = np.asarray(laser_pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise MappingInputError(f"laser_pose must be 3 finite numbers (x m, y m, yaw rad), got {laser_pose!r}")
+        if np.any(np.abs(pose[:2]) > MAX_ABS_COORD):
+            raise MappingInputError(f"laser pose {pose[:2]} m is more than {MAX_ABS_COORD:.0f} m from the map "
+                                    "origin; refusing to grow the map that far (check the pose source)")
+        return pose
 
     # -- outputs -------------------------------------------------------------------------------------------
     def copy_maps(self) -> "GlassMapper":

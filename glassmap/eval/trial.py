@@ -2,10 +2,13 @@
 
 The simulated robot drives a route through a world; scans are simulated at ``scan_rate``. The estimated laser
 pose is the true pose plus an error from :class:`~glassmap.eval.pose_error.PoseErrorModel`. One occupancy
-grid is built from the estimated poses (shared by all methods, as one SLAM run feeds all of them in the
-paper); the classifier runs once per scan; every method then registers the same beams into its own glass
-layer with the sigma of the error model. Methods that change the occupancy update (``*-protect``) get their
-own occupancy grid.
+grid is built (shared by all methods, as one SLAM run feeds all of them in the paper); the classifier runs
+once per scan; every method then registers the same beams into its own glass layer at the estimated pose,
+with the sigma of the error model. Methods that change the occupancy update (``*-protect``) get their own
+occupancy grid. ``TrialConfig.map_poses`` says which poses build the occupancy grid: ``"truth"`` (default:
+a consistent map, as a SLAM back end provides, with only the robot's pose against it uncertain, the
+situation robust registration is designed for) or ``"estimate"`` (the same noisy poses as the
+registration, so that the pose error also smears the walls of the occupancy grid).
 
 Scoring: blueprint wall/glass cells that (a) were seen by at least one returned beam (true end points from
 the true poses) and (b) lie within ``eval_radius`` of a glass cell (the "areas that
@@ -46,6 +49,8 @@ METHODS: dict[str, dict] = {
 clearing; ``-protect-glass`` protects the cells the method's glass map believes are glass instead,
 ``-no-protect`` does not protect, ``-plain`` neither restores nor protects (each with its own occupancy grid)."""
 
+MAP_POSES: tuple[str, ...] = ("truth", "estimate")
+
 DEFAULT_METHODS: tuple[str, ...] = ("direct", "robust3", "robust5", "robust3-endpoint", "direct-beam",
                                     "robust3-beam")
 
@@ -61,6 +66,7 @@ class TrialConfig:
     eval_radius: m around glass cells that define the evaluated area. resolution: grid cell (m).
     max_free_range: how far (m) a beam clears free space in the occupancy update (OccupancyParams; 10 m
     instead of the default 20 m keeps trials fast: the ray casting cost grows with the longest beam).
+    map_poses: poses the occupancy grid is built from, "truth" or "estimate" (see the module docstring).
     """
 
     world: str = "office"
@@ -76,8 +82,11 @@ class TrialConfig:
     weights: str | None = None
     max_v: float = 0.5
     max_free_range: float = 10.0
+    map_poses: str = "truth"
 
     def __post_init__(self) -> None:
+        if self.map_poses not in MAP_POSES:
+            raise ValueError(f"map_poses must be one of {', '.join(MAP_POSES)}, got {self.map_poses!r}")
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown:
             raise ValueError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -155,6 +164,7 @@ def run_trial(cfg: TrialConfig, seed: int, classifier=None) -> TrialResult:
     t_sim = time.perf_counter() - t0
     errors = cfg.pose_error.sample(stamps, rng)
     est = true_poses + errors
+    map_poses = true_poses if cfg.map_poses == "truth" else est
 
     bp = Blueprint.from_world(world, resolution=cfg.resolution)
     if classifier is None:
@@ -194,13 +204,13 @@ def run_trial(cfg: TrialConfig, seed: int, classifier=None) -> TrialResult:
         seen[cy[ok], cx[ok]] = True
         if first is not None:
             beams, use = first.classify(scan)
-            first.integrate(scan, pose)
-            first.mark_glass_hits(beams, use, scan, pose)
+            first.integrate(scan, map_poses[k])
+            first.mark_glass_hits(beams, use, scan, map_poses[k])
             use &= np.isfinite(sigma)
             for mp in mappers.values():
                 mp.register(beams, use, scan, pose, sigma)
         for mp in own.values():
-            mp.process(scan, pose, sigma)
+            mp.process(scan, pose, sigma, occupancy_pose=map_poses[k])
 
     mask = evaluation_mask(bp.labels, seen, bp.resolution, cfg.eval_radius)
     scores = {}
@@ -225,6 +235,7 @@ def build_maps_for_export(cfg: TrialConfig, seed: int, method: str = "robust3", 
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     stamps, true_poses, sims = drive(world, res_cfg, rng)
     est = true_poses + res_cfg.pose_error.sample(stamps, rng)
+    map_poses = true_poses if res_cfg.map_poses == "truth" else est
     if classifier is None:
         classifier = GlassClassifier.load(cfg.weights) if cfg.weights else GlassClassifier.load_default()
     mapper = GlassMapper(None, MapperConfig(angle_method=cfg.angle_method, **METHODS[method]), classifier=classifier)
@@ -232,5 +243,5 @@ def build_maps_for_export(cfg: TrialConfig, seed: int, method: str = "robust3", 
         scan = Scan(stamp=float(stamps[k]), ranges=s.ranges, intensities=s.intensities, geometry=s.geometry, seq=k)
         sigma = (res_cfg.pose_error.beam_sigma(s.ranges) if res_cfg.sigma_mode == "beam"
                  else res_cfg.pose_error.sigma_xy)
-        mapper.process(scan, est[k], sigma)
+        mapper.process(scan, est[k], sigma, occupancy_pose=map_poses[k])
     return mapper

@@ -77,3 +77,19 @@ def test_eval_cli_quick_mode(tmp_path):
     rows = (tmp_path / "trials.csv").read_text().splitlines()
     assert len(rows) == 1 + 2 * 2 and rows[0].startswith("trial,seed,world")
     assert (tmp_path / "boxplot.png").stat().st_size > 1000
+
+
+def test_map_poses_truth_keeps_the_pose_error_out_of_the_occupancy_grid():
+    """map_poses="truth": the occupancy grid is the same whatever the pose error (only the registration
+    sees it); "estimate": the pose error moves the walls of the occupancy grid too."""
+    from glassmap.eval.trial import TrialConfig, build_maps_for_export
+
+    def occupancy(sigma, map_poses):
+        cfg = TrialConfig(duration=5.0, scan_rate=5.0, pose_error=PoseErrorModel(sigma, 0.0), map_poses=map_poses)
+        return build_maps_for_export(cfg, seed=2).occupancy.log_odds
+
+    exact = occupancy(0.0, "truth")
+    assert np.array_equal(occupancy(0.05, "truth"), exact)
+    assert not np.array_equal(occupancy(0.05, "estimate"), exact)
+    with pytest.raises(ValueError, match="map_poses"):
+        TrialConfig(map_poses="slam")
