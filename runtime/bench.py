@@ -27,6 +27,8 @@ def _ms(v) -> str:
     return f"median {np.median(a):6.2f}  p90 {np.percentile(a, 90):6.2f}  p99 {np.percentile(a, 99):6.2f}  ms"
 
 
+STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
+
 STAGES = (("pose", "pose (prediction + matching + fusion)"), ("likelihood_field", "likelihood field rebuild"),
           ("occupancy", "occupancy update (estimator)"), ("glass", "glass path (+ occupancy update by the mapper)"),
           ("total", "total (wall clock)"), ("cpu", "total (CPU time of the thread)"))
@@ -60,6 +62,10 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
                      f"{s.scans_processed} processed, dropped {s.dropped_overflow} (queue full) + "
                      f"{s.dropped_stale} (stale)")
         lines.append(f"  latency scan bytes in -> maps updated: {_ms(res.latency)}")
+        skip = int(round(STARTUP_S * 40))
+        if len(res.latency) > 2 * skip:
+            lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "
+                         f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
     for source in ("messages", "raw"):
         r = replay_file(recording, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
