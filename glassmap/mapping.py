@@ -265,33 +265,60 @@ class GlassMapper:
         return pose
 
     # -- outputs -------------------------------------------------------------------------------------------
-    def copy_maps(self) -> "GlassMapper":
-        """A mapper holding copies of the occupancy and glass layers (same settings, shared classifier), to
-        export or score in another thread while this one keeps mapping. Costs a copy of two layers."""
+    def copy_maps(self) -> "MapCopy":
+        """Copies of the occupancy grid and the glass map (picklable: no classifier), to publish or export in
+        another thread or process while this mapper keeps mapping. Costs a copy of two layers."""
         grid = self.grid.copy([OccupancyGrid.LAYER, self.config.layer])
-        return GlassMapper(OccupancyGrid(grid, self.occupancy.params), self.config, classifier=self.classifier)
+        return MapCopy(OccupancyGrid(grid, self.occupancy.params), GlassMap(grid, self.glass.params, self.config.layer))
 
     def confidence_map(self) -> np.ndarray:
         """(H, W) float32 p(glass) on occupied cells, NaN elsewhere."""
         return self.glass.confidence_map(self.occupancy)
 
     def export(self, out_dir: str, stem: str = "glass_map", scale: int = 2, crop: bool = True) -> dict[str, str]:
-        """Write the glass confidence map: ``stem.png`` (paper colours, each cell scale x scale pixels,
-        cropped to the explored area unless ``crop=False``), ``stem_glass.npy`` (p(glass) on occupied cells,
-        NaN elsewhere, the whole grid; row = y, column = x), ``stem_glass.json`` (origin, resolution of the
-        npy), and the occupancy map ``stem.pgm`` + ``stem.yaml`` (ROS map_server). Returns the paths."""
-        from .render import glass_confidence_png
+        """Write the maps (see :func:`export_maps`). Returns the paths."""
+        return export_maps(self.occupancy, self.glass, out_dir, stem, scale, crop)
 
-        os.makedirs(out_dir, exist_ok=True)
-        base = os.path.join(out_dir, stem)
-        conf = self.confidence_map()
-        png = glass_confidence_png(base + ".png", conf, self.occupancy.free(), scale=scale, crop=crop)
-        npy = base + "_glass.npy"
-        np.save(npy, conf)
-        meta = base + "_glass.json"
-        with open(meta, "w") as f:
-            json.dump({"origin": self.grid.origin.tolist(), "resolution": self.grid.resolution,
-                       "shape": list(conf.shape), "index": "array[iy, ix], cell (0,0) corner at origin",
-                       "values": "p(glass) on occupied cells, NaN elsewhere"}, f, indent=2)
-        pgm, yaml = self.occupancy.save_pgm_yaml(base)
-        return {"png": png, "npy": npy, "json": meta, "pgm": pgm, "yaml": yaml}
+
+@dataclass
+class MapCopy:
+    """A copy of the occupancy grid and the glass map on their own grid (from :meth:`GlassMapper.copy_maps`)."""
+
+    occupancy: OccupancyGrid
+    glass: GlassMap
+
+    @property
+    def grid(self):
+        return self.occupancy.grid
+
+    def confidence_map(self) -> np.ndarray:
+        """(H, W) float32 p(glass) on occupied cells, NaN elsewhere."""
+        return self.glass.confidence_map(self.occupancy)
+
+    def export(self, out_dir: str, stem: str = "glass_map", scale: int = 2, crop: bool = True) -> dict[str, str]:
+        """Write the maps (see :func:`export_maps`). Returns the paths."""
+        return export_maps(self.occupancy, self.glass, out_dir, stem, scale, crop)
+
+
+def export_maps(occupancy: OccupancyGrid, glass: GlassMap, out_dir: str, stem: str = "glass_map", scale: int = 2,
+                crop: bool = True) -> dict[str, str]:
+    """Write the glass confidence map: ``stem.png`` (paper colours, each cell scale x scale pixels, cropped to
+    the explored area unless ``crop=False``), ``stem_glass.npy`` (p(glass) on occupied cells, NaN elsewhere,
+    the whole grid; row = y, column = x), ``stem_glass.json`` (origin, resolution of the npy), and the
+    occupancy map ``stem.pgm`` + ``stem.yaml`` (ROS map_server). Returns the paths."""
+    from .render import glass_confidence_png
+
+    os.makedirs(out_dir, exist_ok=True)
+    base = os.path.join(out_dir, stem)
+    grid = occupancy.grid
+    conf = glass.confidence_map(occupancy)
+    png = glass_confidence_png(base + ".png", conf, occupancy.free(), scale=scale, crop=crop)
+    npy = base + "_glass.npy"
+    np.save(npy, conf)
+    meta = base + "_glass.json"
+    with open(meta, "w") as f:
+        json.dump({"origin": grid.origin.tolist(), "resolution": grid.resolution,
+                   "shape": list(conf.shape), "index": "array[iy, ix], cell (0,0) corner at origin",
+                   "values": "p(glass) on occupied cells, NaN elsewhere"}, f, indent=2)
+    pgm, yaml = occupancy.save_pgm_yaml(base)
+    return {"png": png, "npy": npy, "json": meta, "pgm": pgm, "yaml": yaml}
