@@ -28,7 +28,7 @@ class MapSnapshot:
 
     @classmethod
     def of(cls, mapper) -> "MapSnapshot":
-        """From a :class:`~glassmap.mapping.GlassMapper` (typically a :meth:`MappingProcessor.copy_maps`)."""
+        """From a :class:`~glassmap.mapping.GlassMapper` or a :class:`~glassmap.mapping.MapCopy`."""
         g = mapper.grid
         return cls(occupancy_p=mapper.occupancy.probability(), confidence=mapper.confidence_map(),
                    origin=(float(g.origin[0]), float(g.origin[1])), resolution=float(g.resolution))
@@ -105,9 +105,9 @@ class MappingProcessor:
                           odom=self.latest_odom, timings=timings)
 
     def copy_maps(self):
-        """Copies of the maps (a :class:`~glassmap.mapping.GlassMapper`) to publish or export in another thread:
-        the copy is a ~1 ms memcpy in the processing thread, the conversions and file writing (hundreds of
-        ms for a PNG) then do not hold up the scans."""
+        """Copies of the maps (a picklable :class:`~glassmap.mapping.MapCopy`) to publish or export elsewhere:
+        the copy is a ~1 ms memcpy in the processing thread; the conversions and the file writing then do not
+        hold up the scans."""
         return self.mapper.copy_maps()
 
     def export(self, out_dir: str, stem: str = "glass_map") -> dict[str, str]:
