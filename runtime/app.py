@@ -2,8 +2,8 @@
 
     laser task  --Scan-->  ProcessingStage (bounded queue, executor thread)  --ScanResult-->  recorder, pose
     base task   --Odometry-->        |                                                       (for a driver)
-    export task: maps to out_dir every export_period s (written by a helper process), /map and /glass/map
-                 every map_publish_period s (from a copy of the maps, converted in a thread)
+    export task: maps to out_dir every export_period s, /map and /glass/map every map_publish_period s,
+                 both made from a copy of the maps by the map worker process (runtime.map_worker)
     driver task (optional): route following (demo) or keyboard teleoperation; nothing else moves the robot
 
 Shutdown (Ctrl-C, SIGTERM, ``duration`` reached, or any task failing, e.g. a crash in processing): the
@@ -14,14 +14,11 @@ exported, the recording finished. :meth:`Runtime.run` then re-raises the failure
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import dataclasses
 import json
 import logging
 import math
-import multiprocessing
-import os
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures.process import BrokenProcessPool
@@ -31,7 +28,8 @@ from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
 from runtime.pipeline import ProcessingStage, ScanResult
-from runtime.processor import MappingProcessor, MapSnapshot
+from runtime.map_worker import MapWorker, map_messages
+from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
@@ -108,7 +106,7 @@ class Runtime:
         self.recorder: McapRecorder | None = None
         self.sink: RecordingSink | None = None
         self._rx_time: dict[str, float] = {}
-        self._export_pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self.map_worker = MapWorker()
         self._pose_event = asyncio.Event()
 
     # -- helpers for drivers (route following, teleop) ---------------------------------------------------
@@ -159,9 +157,9 @@ class Runtime:
         failure: BaseException | None = None
         try:
             with handle_signals(stop):
-                await self.stage.call(self.processor.warm_up)  # before the devices: first scans not delayed
-                if cfg.output.export_period > 0:
-                    await self._start_export_process()
+                # before the devices connect, so that the first scans are not delayed by start-up work
+                await self.stage.call(self.processor.warm_up)
+                await self.map_worker.start()
                 await self._connect()
                 tasks = [asyncio.create_task(self._laser_task(), name="laser"),
                          asyncio.create_task(self.stage.run(), name="processing"),
@@ -194,8 +192,7 @@ class Runtime:
             await self._close_devices()
             if self.stage is not None:
                 self.stage.shutdown()
-            if self._export_pool is not None:
-                self._export_pool.shutdown(wait=True, cancel_futures=True)
+            self.map_worker.shutdown()
             self.summary.stop_reason = stop.reason
             self.summary.duration = time.monotonic() - t_start
             self._fill_summary()
@@ -290,36 +287,25 @@ class Runtime:
             if publish and self.sink is not None:
                 await self._publish_maps(maps)
             if export:
-                try:
-                    self.summary.exports = await self._export_in_helper_process(maps)
-                    log.info("maps exported to %s", out.out_dir)
-                except (OSError, BrokenProcessPool) as exc:  # keep mapping (and the robot safe); say why
-                    log.error("map export to %s failed: %s", out.out_dir, exc)
+                await self._export_maps(maps)
 
-    async def _start_export_process(self) -> None:
-        """Start the export helper process and let it import what an export needs (numpy, matplotlib):
-        done before the devices connect, so that this CPU time is not taken from the first scans."""
-        self._export_pool = concurrent.futures.ProcessPoolExecutor(
-            1, mp_context=multiprocessing.get_context("spawn"), initializer=_export_process_init,
-            initargs=(os.getpid(),))
-        await asyncio.get_running_loop().run_in_executor(self._export_pool, os.getpid)  # started and ready
-
-    async def _export_in_helper_process(self, maps) -> dict[str, str]:
-        """A periodic export, written by a helper process (started at the first export): colouring and
-        encoding a PNG holds the GIL for tens of milliseconds (the first one also imports matplotlib,
-        ~0.3 s), which in a thread of this process holds up the scans (live p99 latency 42 -> 24 ms without
-        it on the development machine)."""
-        if self._export_pool is None:
-            await self._start_export_process()
+    async def _export_maps(self, maps) -> None:
         out = self.config.output
-        return await asyncio.get_running_loop().run_in_executor(self._export_pool, maps.export, out.out_dir,
-                                                                self.export_stem)
+        try:
+            self.summary.exports = await self.map_worker.export(maps, out.out_dir, self.export_stem)
+            log.info("maps exported to %s", out.out_dir)
+        except (OSError, BrokenProcessPool) as exc:  # keep mapping (and the robot safe); say why
+            log.error("map export to %s failed: %s", out.out_dir, exc)
 
     async def _publish_maps(self, maps) -> None:
-        """/map and /glass/map from a copy of the maps (converted outside the event loop)."""
-        t = time.monotonic()
-        snap = await asyncio.to_thread(MapSnapshot.of, maps)
-        self.sink.maps(t, snap.occupancy_p, snap.confidence, snap.origin, snap.resolution)
+        """/map and /glass/map from a copy of the maps (built and serialised by the map worker)."""
+        ns = self.time_base.ns(time.monotonic())
+        try:
+            occ, glass = await self.map_worker.map_messages(maps, ns, self.config.mapping.map_frame)
+        except BrokenProcessPool as exc:
+            log.error("map messages not recorded: %s", exc)
+            return
+        self.sink.maps(ns, occ, glass)
 
     async def _shutdown(self, tasks: list[asyncio.Task], stopper: asyncio.Task) -> None:
         """Cancel the driver (no further commands), stop the robot, then cancel the device and export tasks."""
@@ -352,10 +338,12 @@ class Runtime:
                 await proc
         if self.latest is not None:
             try:
+                # the scans are done: in this process, so that the last maps never depend on the map worker
                 out = self.config.output
                 maps = await self.stage.call(self.processor.copy_maps)
                 if self.sink is not None:
-                    await self._publish_maps(maps)
+                    ns = self.time_base.ns(time.monotonic())
+                    self.sink.maps(ns, *await asyncio.to_thread(map_messages, maps, ns, self.config.mapping.map_frame))
                 self.summary.exports = await asyncio.to_thread(maps.export, out.out_dir, self.export_stem)
             except Exception as exc:
                 log.error("final map export failed: %s", exc)
@@ -382,22 +370,6 @@ class Runtime:
             s.scans_received, s.scans_processed = st.scans_received, st.scans_processed
             s.dropped_overflow, s.dropped_stale = st.dropped_overflow, st.dropped_stale
             s.odometry = st.odometry_received
-
-
-def _export_process_init(parent_pid: int) -> None:
-    """Runs when the export helper process starts: it ends when the runtime's process is gone (even after a
-    SIGKILL, which runs no clean-up), then imports what writing the maps needs."""
-    import importlib
-    import threading
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(0.5)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-    for name in ("matplotlib.image", "glassmap.mapping", "glassmap.render"):
-        importlib.import_module(name)
 
 
 def _record_info_logs(handler: logging.Handler):

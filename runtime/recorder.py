@@ -100,7 +100,7 @@ class McapRecorder:
         """Queue one message; returns False (and counts it) if the queue is full or the recorder closed.
 
         ``msg`` may be a zero-argument callable returning the message: it is then built in the writer thread
-        (for big messages such as maps, so the event loop does not pay for them)."""
+        (so the caller does not pay for it); or ``bytes``: the message already serialised as CDR."""
         if self._closed:
             self.stats.dropped[topic] += 1
             return False
@@ -181,7 +181,7 @@ class McapRecorder:
                     cid = self._channel(topic)
                     if callable(msg):
                         msg = msg()
-                    data = ts.serialize_cdr(msg, self.topics[topic])
+                    data = msg if isinstance(msg, bytes) else ts.serialize_cdr(msg, self.topics[topic])
                     self._writer.add_message(channel_id=cid, log_time=log_ns, publish_time=pub_ns,
                                              data=bytes(data), sequence=self.stats.written[topic])
                     self.stats.written[topic] += 1

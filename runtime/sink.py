@@ -89,12 +89,10 @@ class RecordingSink:
             self.rec.write("/tf_static", M.tf_msg([tf]), ns)
             self._static_sent = True
 
-    def maps(self, host_time: float, occupancy_p: np.ndarray, confidence: np.ndarray,
-             origin_xy: tuple[float, float], resolution: float) -> None:
-        ns = self.tb.ns(host_time)
-        mf = self.map_frame  # the messages are built in the recorder's thread (arrays are not shared)
-        self.rec.write("/map", lambda: M.occupancy_grid_msg(occupancy_p, origin_xy, resolution, ns, mf), ns)
-        self.rec.write("/glass/map", lambda: M.glass_grid_msg(confidence, origin_xy, resolution, ns, mf), ns)
+    def maps(self, stamp_ns: int, occupancy_cdr: bytes, glass_cdr: bytes) -> None:
+        """/map and /glass/map, serialised elsewhere (see :class:`runtime.map_worker.MapWorker`)."""
+        self.rec.write("/map", occupancy_cdr, stamp_ns)
+        self.rec.write("/glass/map", glass_cdr, stamp_ns)
 
     def summary(self, host_time: float, stats: dict) -> None:
         """A final /rosout line with the run's counters (JSON)."""

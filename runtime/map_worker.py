@@ -1,0 +1,84 @@
+"""The map worker: a helper process that turns copies of the maps into files and recorded messages.
+
+Colouring and encoding a PNG, building the /map and /glass/map messages (a few MB of numpy work) and the
+first import of matplotlib hold the GIL for tens to hundreds of milliseconds. In a thread of the runtime's
+process that time is taken from the scans (the live p99 latency doubled on the development machine); in
+this process it is not. The runtime hands over a picklable :class:`~glassmap.mapping.MapCopy` (a ~1 ms copy
+of two layers made between two scans) and gets back the paths of the files or the CDR-serialised messages.
+
+The process is started (spawned, not forked: the runtime has threads) before the devices connect, and ends
+with the runtime, also after a SIGKILL of the runtime (a watchdog thread in the worker polls its parent).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import multiprocessing
+import os
+import time
+
+from glassmap.mapping import MapCopy
+
+
+class MapWorker:
+    """One helper process for map exports and map messages; use from the event loop."""
+
+    def __init__(self) -> None:
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+
+    async def start(self) -> None:
+        """Start the process and wait until it has imported what it needs (~1-2 s, once)."""
+        if self._pool is None:
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"), initializer=_init, initargs=(os.getpid(),))
+        await self._run(os.getpid)
+
+    async def export(self, maps: MapCopy, out_dir: str, stem: str) -> dict[str, str]:
+        """Write PNG, .npy + .json, PGM + YAML (see :func:`glassmap.mapping.export_maps`); returns the paths.
+        Raises OSError when the files cannot be written, BrokenProcessPool when the worker died."""
+        return await self._run(maps.export, out_dir, stem)
+
+    async def map_messages(self, maps: MapCopy, stamp_ns: int, frame_id: str) -> tuple[bytes, bytes]:
+        """CDR of the nav_msgs/OccupancyGrid (/map) and the foxglove_msgs/Grid (/glass/map) of ``maps``."""
+        return await self._run(map_messages, maps, stamp_ns, frame_id)
+
+    def shutdown(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    async def _run(self, fn, *args):
+        if self._pool is None:
+            await self.start()
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
+
+# -- run in the worker process ---------------------------------------------------------------------------
+def _init(parent_pid: int) -> None:
+    """Worker start: end when the runtime's process is gone (a SIGKILL runs no clean-up there), then import
+    what the work needs so that the first export is not slow."""
+    import importlib
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    for name in ("matplotlib.image", "glassmap.render", "runtime.messages", "runtime.processor"):
+        importlib.import_module(name)
+
+
+def map_messages(maps: MapCopy, stamp_ns: int, frame_id: str) -> tuple[bytes, bytes]:
+    """CDR of the /map (nav_msgs/OccupancyGrid) and /glass/map (foxglove_msgs/Grid) messages of ``maps``
+    (in whatever process calls it)."""
+    from runtime import messages as M
+    from runtime.processor import MapSnapshot
+
+    snap = MapSnapshot.of(maps)
+    ts = M.typestore()
+    occ = M.occupancy_grid_msg(snap.occupancy_p, snap.origin, snap.resolution, stamp_ns, frame_id)
+    glass = M.glass_grid_msg(snap.confidence, snap.origin, snap.resolution, stamp_ns, frame_id)
+    return (bytes(ts.serialize_cdr(occ, M.TOPICS["/map"])), bytes(ts.serialize_cdr(glass, M.TOPICS["/glass/map"])))

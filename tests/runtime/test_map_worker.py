@@ -1,0 +1,96 @@
+"""The map worker process: map messages and exports made from a copy of the maps, and its life cycle."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.mapping import GlassMapper
+from runtime import messages as M
+from runtime.map_worker import MapWorker, map_messages
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def small_maps():
+    """A 4 x 6 cell map: one occupied glass cell, one occupied wall cell, free cells, the rest unknown."""
+    occ = OccupancyGrid(MapGrid(0.05, (1.0, -2.0), (4, 6)))
+    occ.log_odds[1, 2] = occ.log_odds[2, 4] = 3.0
+    occ.log_odds[0, :] = -3.0
+    mapper = GlassMapper(occ, classifier=object())  # no classification here: any classifier will do
+    mapper.glass.log_odds[1, 2], mapper.glass.log_odds[2, 4] = 4.0, -4.0
+    return mapper.copy_maps()
+
+
+def test_map_messages_are_the_cdr_of_the_recorded_map_messages():
+    occ_cdr, glass_cdr = map_messages(small_maps(), 123_000_000_000, "map")
+    ts = M.typestore()
+    occ = ts.deserialize_cdr(occ_cdr, M.TOPICS["/map"])
+    assert (occ.info.width, occ.info.height, occ.info.resolution) == (6, 4, pytest.approx(0.05))
+    assert occ.info.origin.position.x == pytest.approx(1.0) and occ.header.frame_id == "map"
+    data = np.asarray(occ.data).reshape(4, 6)
+    assert data[1, 2] == data[2, 4] == 95 and (data[0] == 5).all() and data[3, 0] == -1
+    glass = ts.deserialize_cdr(glass_cdr, M.TOPICS["/glass/map"])
+    v = M.grid_values(glass)
+    assert v[1, 2] > 0.98 and v[2, 4] < 0.02 and np.isnan(v[0, 0]) and np.isnan(v[3, 5])
+    assert M.stamp_to_ns(glass.timestamp) == 123_000_000_000
+
+
+def test_worker_exports_and_serialises_in_its_own_process(tmp_path):
+    async def main():
+        worker = MapWorker()
+        try:
+            await worker.start()
+            pid = await worker._run(os.getpid)
+            paths = await worker.export(small_maps(), str(tmp_path), "w")
+            msgs = await worker.map_messages(small_maps(), 5, "map")
+        finally:
+            worker.shutdown()
+        return pid, paths, msgs
+
+    pid, paths, msgs = asyncio.run(main())
+    assert pid != os.getpid()
+    assert Path(paths["png"]).stat().st_size > 50 and Path(paths["pgm"]).is_file()
+    assert msgs == map_messages(small_maps(), 5, "map")
+
+
+def test_worker_ends_when_the_runtime_process_is_killed():
+    script = textwrap.dedent("""
+        import asyncio, os, sys, time
+        from runtime.map_worker import MapWorker
+
+        async def main():
+            w = MapWorker()
+            await w.start()
+            print(await w._run(os.getpid), flush=True)
+            time.sleep(60)
+
+        if __name__ == "__main__":
+            asyncio.run(main())
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        worker_pid = int(proc.stdout.readline())
+        os.kill(worker_pid, 0)  # alive
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(worker_pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    pytest.fail(f"map worker {worker_pid} still running 10 s after the runtime process was killed")
