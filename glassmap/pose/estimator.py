@@ -30,7 +30,7 @@ from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, MatchResult, select_points
-from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, relative
+from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
 from glassmap.types import Odometry, PoseEstimate, Scan
 
 log = logging.getLogger(__name__)
@@ -38,6 +38,9 @@ log = logging.getLogger(__name__)
 GLASS_LAYER = "glass"
 MAP_VAR_LAYER = "pose_var_xy"
 MAP_VAR_YAW_LAYER = "pose_var_yaw"
+# the placement a cell keeps (the one with the smallest pose_var_xy): laser position (map frame, m) and the
+# position variance (m^2) of that laser pose
+MAP_SRC_LAYERS = ("pose_var_src_x", "pose_var_src_y", "pose_var_src_xy")
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 
 
@@ -46,7 +49,12 @@ class EstimatorConfig:
     """Settings of :class:`PoseEstimator`. Lengths in metres, angles in radians, times in seconds.
 
     laser_mount: laser pose (x, y, yaw) in the base frame (the simulated and the real Pioneer carry the
-        Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here.
+        Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here. The
+        map frame is defined by the first pose, so its uncertainty is (almost) zero: 1 mm, 1 mrad (not 0,
+        to keep the filter's covariance positive definite). Every cell of the map inherits at least this
+        variance (see the class docstring), so a larger value is a floor under every reported covariance:
+        the former (5 mm, 0.2 deg) made the covariance of runs that stay accurate (room, glass corridor)
+        twice too wide (NEES 1.0-1.5). Set it larger when the start pose is only known in another frame.
     range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
         (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
     keyframe_distance, keyframe_angle, keyframe_max_scans: motion filter. Every scan gets the EKF prediction
@@ -69,6 +77,12 @@ class EstimatorConfig:
     integrate: integrate each key scan into the occupancy grid at the corrected pose.
     subcell_walls: keep the mean end-point position per cell (layers ``pose_hit_*``) and measure the
         likelihood field's distances to it rather than to cell centres (see LikelihoodField.rebuild).
+    deskew: undo the base's motion during the laser's sweep on key scans (beam k is taken at stamp + k *
+        time_increment; the UTM-30LX sweeps its 270 deg in about 19 ms, so a turn at 60 deg/s bends a scan
+        by 1.1 deg and 0.5 m/s stretches it by 9 mm) with the buffered odometry before matching and
+        integrating. Off by default because the simulator takes every beam of a scan from the pose at its
+        stamp (there is nothing to undo there, and ``glassmap pose eval`` cannot measure the benefit); turn
+        it on with a real laser whose ``Scan.stamp`` is the time of the first beam.
     map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
         map built so far (see :class:`PoseEstimator`): cells remember the variance of the pose that placed
         them, and a match inherits the variance of the cells it matched.
@@ -76,7 +90,7 @@ class EstimatorConfig:
 
     laser_mount: tuple[float, float, float] = (0.1, 0.0, 0.0)
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    initial_sigma: tuple[float, float, float] = (0.005, 0.005, float(np.radians(0.2)))
+    initial_sigma: tuple[float, float, float] = (0.001, 0.001, 0.001)
     motion: MotionNoise = dc_field(default_factory=MotionNoise)
     matcher: MatcherConfig = dc_field(default_factory=MatcherConfig)
     likelihood: FieldParams = dc_field(default_factory=FieldParams)
@@ -94,6 +108,7 @@ class EstimatorConfig:
     protect_glass: bool = False
     glass_protect_p: float = 0.7
     integrate: bool = True
+    deskew: bool = False
     map_uncertainty: bool = True
     subcell_walls: bool = True
 
@@ -132,10 +147,13 @@ class PoseEstimator:
     and match covariances); that alone would be overconfident, because the map itself is only as good as
     the poses that built it and every scan matched against the same part of the map shares its error.
     So every end-point cell stores the variance it was placed with (layers ``pose_var_xy``: sigma_xy^2 +
-    (r sigma_theta)^2 of the reported covariance, and ``pose_var_yaw``; the smallest seen is kept), a match
-    reads the median variance of the cells under its end points (``map_var``), and the reported covariance
-    is ``ekf.cov + diag(map_var_xy, map_var_xy, map_var_yaw)``. Exploring new ground makes it grow like
-    a random walk; coming back to well-known ground makes it shrink again.
+    (r sigma_theta)^2 of the reported covariance, with sigma_xy^2 the mean of the two position eigenvalues;
+    the smallest seen is kept, with the laser position and sigma_xy^2 of that placement in
+    ``pose_var_src_x/_y/_xy``; ``pose_var_yaw`` keeps the smallest sigma_theta^2), a match reads the
+    covariance of the map region under its end points (``map_cov``, see :meth:`_matched_map_covariance`:
+    the placement's shift plus its yaw error times the robot's lever arm from the placing position), and
+    the reported covariance is ``ekf.cov + map_cov``. Exploring new ground makes it grow like a random
+    walk; coming back to well-known ground makes it shrink again.
     """
 
     def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
@@ -157,7 +175,8 @@ class PoseEstimator:
         self._since_key = 0
         self._executor: ThreadPoolExecutor | None = None
         self._pending_field: Future | None = None  # a field rebuild running in the worker thread
-        self.map_var = np.zeros(2)  # (xy m^2, yaw rad^2) of the map region matched last
+        self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
+        self._extrapolated = (0.0, 0.0)  # (s past the newest odometry, v m/s) of the last prediction
         if config.subcell_walls:
             for name in HIT_LAYERS:
                 if name not in self.occupancy.grid.layer_names:
@@ -169,6 +188,9 @@ class PoseEstimator:
             for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER):
                 if name not in self.occupancy.grid.layer_names:
                     self.occupancy.grid.add_layer(name, np.inf, np.float32)
+            for name in MAP_SRC_LAYERS:
+                if name not in self.occupancy.grid.layer_names:
+                    self.occupancy.grid.add_layer(name, 0.0, np.float32)
 
     # ------------------------------------------------------------------ inputs
     def predict(self, odom: Odometry) -> None:
@@ -200,6 +222,7 @@ class PoseEstimator:
         # ---- prediction from odometry interpolated to the scan time
         if len(self.odometry):
             odom_now = self.odometry.pose_at(stamp)
+            self._extrapolated = self.odometry.extrapolation(stamp)
             delta = relative(self._last_odom, odom_now) if self._last_odom is not None else np.zeros(3)
             self._last_odom = odom_now
         else:
@@ -224,7 +247,10 @@ class PoseEstimator:
 
         # ---- likelihood field (rebuilt every few key scans or when needed; timed separately)
         self._install_pending_field()
+        # (a field with no walls yet is rebuilt as soon as a scan has been integrated: otherwise the first
+        # field_refresh_scans key scans would all be placed by odometry alone, and the map keeps their errors)
         if (self._since_rebuild >= cfg.field_refresh_scans
+                or (not self.field.ready and self._since_rebuild > 0)
                 or self.field.needs_rebuild(self.occupancy, self.ekf.pose[:2], cfg.matcher.range_max * 0.25 + 1.0)):
             self._rebuild_field()
 
@@ -232,6 +258,8 @@ class PoseEstimator:
         t2 = time.perf_counter()
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         angles = scan.angles
+        if cfg.deskew and len(self.odometry) and ranges.size > 1:
+            angles, ranges = self.deskewed(scan)
         weights = None
         if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names:
             weights = self.glass_weights(self.laser_pose_of(self.ekf.pose), angles, ranges)
@@ -251,7 +279,7 @@ class PoseEstimator:
                 self.ekf.correct(res.pose, res.covariance)
                 st.matched += 1
                 if cfg.map_uncertainty:
-                    self.map_var = self._matched_map_variance(pts, self.ekf.pose)
+                    self.map_cov = self._matched_map_covariance(pts, self.ekf.pose)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -279,6 +307,19 @@ class PoseEstimator:
         self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)
+
+    def deskewed(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+        """(angles, ranges) of ``scan`` as seen from the laser at ``scan.stamp`` (the first beam), undoing the
+        base's motion during the sweep with the buffered odometry (beam k is taken at stamp + k *
+        geometry.time_increment); see :func:`glassmap.pose.motion.deskew`."""
+        ranges = np.asarray(scan.ranges, dtype=np.float64)
+        n = ranges.size
+        sweep = scan.geometry.time_increment * (n - 1)
+        if n < 2 or sweep <= 0 or not len(self.odometry):
+            return scan.angles, ranges
+        t0 = float(scan.stamp)
+        delta = relative(self.odometry.pose_at(t0), self.odometry.pose_at(t0 + sweep))
+        return deskew(scan.angles, ranges, self.mount, delta, np.arange(n) / (n - 1))
 
     def _rebuild_field(self, background: bool = False) -> None:
         """Rebuild the likelihood field around the current pose (time in ``stats.t_field``); with
@@ -329,30 +370,53 @@ class PoseEstimator:
             np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
 
     # ------------------------------------------------------------------ map uncertainty
-    def _matched_map_variance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """Median (xy, yaw) variance of the cells under the matched end points (base-frame pts at pose); the
-        median, because a few far cells placed with a long lever arm (r sigma_theta) would dominate a mean."""
+    def _matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """3x3 covariance (x, y, yaw; map frame) of the map region under the matched end points (base-frame
+        pts at pose).
+
+        A cell placed from laser position P (position variance sigma_P^2, yaw variance sigma_th^2) is off by
+        the error of that placement: a shift plus a rotation by d_th about P. A robot at X matched against
+        it inherits both: position error shift + d_th * u with u = perp(X - P) (the lever arm of the robot,
+        not the cell's own r^2 sigma_th^2), yaw error d_th. Per cell the covariance is therefore
+        diag(sigma_P^2, sigma_P^2, 0) + sigma_th^2 [u; 1][u; 1]^T: anisotropic (a yaw error of the map
+        behind the robot moves it sideways, not along the corridor) and correlated with yaw. The region's
+        covariance is the mean over the matched cells without the quarter with the largest trace (a few
+        cells placed from far away would dominate a plain mean)."""
         g = self.occupancy.grid
         c, s = np.cos(pose[2]), np.sin(pose[2])
         xy = pose[:2] + pts @ np.array([[c, s], [-s, c]])
         cells = g.world_to_cell(xy)
         ok = g.in_bounds(cells)
-        vxy = g[MAP_VAR_LAYER][cells[ok, 1], cells[ok, 0]]
-        vyaw = g[MAP_VAR_YAW_LAYER][cells[ok, 1], cells[ok, 0]]
-        fin = np.isfinite(vxy)
+        cy, cx = cells[ok, 1], cells[ok, 0]
+        vxy = g[MAP_VAR_LAYER][cy, cx].astype(np.float64)
+        vyaw = g[MAP_VAR_YAW_LAYER][cy, cx].astype(np.float64)
+        fin = np.isfinite(vxy) & np.isfinite(vyaw)
         if not fin.any():
-            return self.map_var
-        return np.array([float(np.median(vxy[fin])), float(np.median(vyaw[fin]))])
+            return self.map_cov
+        vxy, vyaw, xy = vxy[fin], vyaw[fin], xy[ok][fin]
+        src = np.stack([g[MAP_SRC_LAYERS[0]][cy, cx][fin], g[MAP_SRC_LAYERS[1]][cy, cx][fin]], axis=1)
+        sp2 = g[MAP_SRC_LAYERS[2]][cy, cx][fin].astype(np.float64)  # position variance of the placing pose
+        lever = self.laser_pose_of(pose)[:2] - src  # (m, 2): robot relative to the placing position
+        v = np.stack([-lever[:, 1], lever[:, 0], np.ones(len(sp2))], axis=1)  # d(error)/d(d_th)
+        covs = vyaw[:, None, None] * v[:, :, None] * v[:, None, :]
+        covs[:, 0, 0] += sp2
+        covs[:, 1, 1] += sp2
+        tr = np.trace(covs, axis1=1, axis2=2)
+        keep = tr <= np.quantile(tr, 0.75)
+        out = covs[keep].mean(axis=0)
+        return 0.5 * (out + out.T)
 
     def _store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
-        """Give the end-point cells of this scan the variance of the reported pose (keep the smallest)."""
+        """Give the end-point cells of this scan the variance of the reported pose, sigma_xy^2 + r^2
+        sigma_th^2 at range r, and the laser position it was placed from, where that is smaller than what
+        the cell holds (the best placement is kept); the yaw variance layer keeps the smallest sigma_th^2."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
         if not hit.any():
             return
         g = self.occupancy.grid
-        cov = self.ekf.cov[:2, :2]
-        sxy2 = float(np.linalg.eigvalsh(cov).max()) + self.map_var[0]
-        sth2 = float(self.ekf.cov[2, 2]) + self.map_var[1]
+        tot = self.ekf.cov + self.map_cov  # (after the match: the extrapolation error is matched away)
+        sxy2 = 0.5 * float(np.trace(tot[:2, :2]))
+        sth2 = float(tot[2, 2])
         lp = self.laser_pose_of(self.ekf.pose)
         r = ranges[hit]
         a = lp[2] + angles[hit]
@@ -361,14 +425,34 @@ class PoseEstimator:
         cells, r = cells[ok], r[ok]
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
         var = (sxy2 + r * r * sth2).astype(np.float32)
-        lay, lay_yaw = g[MAP_VAR_LAYER].ravel(), g[MAP_VAR_YAW_LAYER].ravel()
+        lay, lay_yaw = g[MAP_VAR_LAYER].reshape(-1), g[MAP_VAR_YAW_LAYER].reshape(-1)
+        before = lay[flat]
         np.minimum.at(lay, flat, var)
+        upd = flat[lay[flat] < before]  # cells this scan placed better than before (all from pose lp)
         np.minimum.at(lay_yaw, flat, np.float32(sth2))
+        g[MAP_SRC_LAYERS[0]].reshape(-1)[upd] = np.float32(lp[0])
+        g[MAP_SRC_LAYERS[1]].reshape(-1)[upd] = np.float32(lp[1])
+        g[MAP_SRC_LAYERS[2]].reshape(-1)[upd] = np.float32(sxy2)
 
     # ------------------------------------------------------------------ outputs
     def covariance(self) -> np.ndarray:
-        """Reported 3x3 covariance: the EKF's (relative to the map) plus the matched map region's."""
-        return self.ekf.cov + np.diag([self.map_var[0], self.map_var[0], self.map_var[1]])
+        """Reported 3x3 covariance: the EKF's (relative to the map) plus the matched map region's, plus, when
+        the scan came after the newest odometry message, the error of extrapolating with that message's
+        noisy velocity (:meth:`MotionNoise.extrapolation_covariance`; transient: the next message replaces
+        the extrapolated motion, so it is not added to the filter's state covariance)."""
+        cov = self.ekf.cov + self.map_cov
+        dt, v = self._extrapolated
+        if dt > 0:
+            c, s = np.cos(self.ekf.pose[2]), np.sin(self.ekf.pose[2])
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            cov = cov + rot @ self.config.motion.extrapolation_covariance(v, dt) @ rot.T
+        return cov
+
+    @property
+    def map_var(self) -> np.ndarray:
+        """(xy, yaw) variances (m^2, rad^2) of the map region matched last: the larger eigenvalue of the
+        position block and the yaw entry of ``map_cov``."""
+        return np.array([float(np.linalg.eigvalsh(self.map_cov[:2, :2]).max()), float(self.map_cov[2, 2])])
 
     def estimate(self, stamp: float | None = None) -> PoseEstimate:
         """The current estimate (base, map frame) with the reported covariance."""

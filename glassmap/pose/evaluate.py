@@ -9,7 +9,6 @@ e^T P^-1 e (3 dof, x, y, yaw; ideal mean 3) with the share of scans inside the 9
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np

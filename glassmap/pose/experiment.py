@@ -12,7 +12,7 @@ cells seen by a returned beam and within ``eval_radius`` of glass.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 

@@ -5,7 +5,10 @@ Each cell holds the log-likelihood of a beam end point falling in it:
 floor stands for everything the map does not explain (people, glass seen for the first time, unknown
 space). A second array holds, per cell, the maximum over the ``f x f`` block starting at that cell: looking
 a point up there gives an upper bound of the fine score over a coarse translation step (multi-resolution
-search). The field covers a square crop around the robot and is rebuilt from the grid when asked.
+search). With ``FieldParams.vectors`` two more arrays hold, per cell near a wall, the vector (m) from the
+cell centre to the wall point (along the wall's normal where the wall is straight): the matcher's fine stage
+interpolates that vector, not the likelihood (see :meth:`LikelihoodField.log_likelihood`). The field covers
+a square crop around the robot and is rebuilt from the grid when asked.
 """
 
 from __future__ import annotations
@@ -18,19 +21,34 @@ from scipy import ndimage
 from glassmap.grid import OccupancyGrid
 
 
+FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
+
+
 @dataclass(frozen=True)
 class FieldParams:
     """sigma_hit (m): end-point spread around a wall; p_floor: uniform floor (relative to the peak 1);
     occupied_log_odds: cells above it count as walls; half_size (m): half-width of the crop around the
     robot; pad (cells): border of floor cells so that lookups near the edge stay in the array;
-    coarse_factor: cells per coarse step of the multi-resolution search."""
+    coarse_factor: cells per coarse step of the multi-resolution search; pool (cells): the wall position of
+    an occupied cell is the mean of the end points that fell in the (2 pool + 1)^2 cells around it (0: only
+    its own; see :meth:`LikelihoodField.compute`); vectors: also store, per cell, the vector (m) from the
+    cell centre to the nearest wall point, for :meth:`LikelihoodField.log_likelihood` and the matcher's
+    fine stage (bilinear interpolation of the vector is exact near a wall, that of the likelihood is not);
+    line_normals: where the neighbourhood's end points form a straight wall (smaller / larger scatter
+    eigenvalue below line_ratio), measure the distance along the wall's normal only (see
+    :meth:`LikelihoodField._pooled`). sigma_hit 3 cm (was 5 cm): with unbiased walls a sharper field took the
+    office ATE from 4.5 / 3.7 to 2.8 / 2.2 cm (seeds 0 / 1) when it was changed."""
 
-    sigma_hit: float = 0.05
+    sigma_hit: float = 0.03
     p_floor: float = 0.05
     occupied_log_odds: float = 0.6
     half_size: float = 14.0
     pad: int = 64
     coarse_factor: int = 4
+    pool: int = 1
+    vectors: bool = True
+    line_normals: bool = True
+    line_ratio: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -56,6 +74,8 @@ class FieldArrays:
     coarse: np.ndarray | None
     shape: tuple[int, int]
     n_occupied: int
+    vx: np.ndarray | None = None
+    vy: np.ndarray | None = None
 
 
 class LikelihoodField:
@@ -69,6 +89,8 @@ class LikelihoodField:
         self.params = params
         self.fine: np.ndarray | None = None
         self.coarse: np.ndarray | None = None
+        self.vx: np.ndarray | None = None  # flat, vector (m) from each cell centre to the nearest wall point
+        self.vy: np.ndarray | None = None
         self.origin = np.zeros(2)
         self.resolution = 0.05
         self.shape = (0, 0)
@@ -127,6 +149,10 @@ class LikelihoodField:
         pad = p.pad
         floor = np.float32(np.log(p.p_floor))
         field = np.full((occ.shape[0] + 2 * pad, occ.shape[1] + 2 * pad), floor, dtype=np.float32)
+        vx = vy = None
+        if p.vectors:  # "far": a vector long enough that the Gaussian is below the floor's resolution
+            vx = np.full(field.shape, np.float32(FAR), dtype=np.float32)
+            vy = np.zeros(field.shape, dtype=np.float32)
         if n_occupied:
             # beyond cut (m) the Gaussian is negligible against the floor (< 1e-4 in log), so only the cells
             # that close to a wall are computed; the rest keep the floor
@@ -138,20 +164,95 @@ class LikelihoodField:
             cut_c = int(np.ceil(cut / res))
             near = np.nonzero(ddx * ddx + ddy * ddy <= cut_c * cut_c)
             ny, nx, ddy, ddx = ny[near], nx[near], ddy[near], ddx[near]
-            if inputs.points is None:
-                d = np.hypot(ddx, ddy) * res
-            else:
-                sx, sy, cnt = inputs.points
-                c = cnt[ny, nx]
-                has = c > 0
-                cs = np.where(has, c, 1)
-                mx = np.where(has, sx[ny, nx] / cs, 0.5 * res)  # mean offset in the cell (m)
-                my = np.where(has, sy[ny, nx] / cs, 0.5 * res)
-                d = np.hypot((ddx - 0.5) * res + mx, (ddy - 0.5) * res + my)
+            points, pool = inputs.points, p.pool
+            if points is None:  # no end-point layers: one point at the centre of each occupied cell (cell
+                cnt0 = occ.astype(np.float64)  # centres carry no measurement bias: nothing to pool)
+                points, pool = (0.5 * res * cnt0, 0.5 * res * cnt0, cnt0), 0
+            # the wall point and normal are needed only at the occupied cells some near cell is closest to
+            u, inv = np.unique(ny.astype(np.int64) * occ.shape[1] + nx, return_inverse=True)
+            uy, ux = np.divmod(u, occ.shape[1])
+            sx, sy, c, nrm = self._pooled(points, res, pool, uy, ux)
+            has = c > 0
+            cs = np.where(has, c, 1)
+            mx = np.where(has, sx / cs, 0.5 * res)[inv]  # mean offset in the cell (m)
+            my = np.where(has, sy / cs, 0.5 * res)[inv]
+            ex, ey = (ddx - 0.5) * res + mx, (ddy - 0.5) * res + my  # cell centre -> wall point (m)
+            if nrm is not None:  # straight wall there: distance along its normal only
+                nx_, ny_ = nrm[0][inv], nrm[1][inv]
+                line = (has & nrm[2])[inv]
+                dot = ex * nx_ + ey * ny_
+                ex, ey = np.where(line, dot * nx_, ex), np.where(line, dot * ny_, ey)
+            d = np.hypot(ex, ey)
             inner[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
+            if vx is not None:
+                vx[pad:-pad, pad:-pad][near] = ex
+                vy[pad:-pad, pad:-pad][near] = ey
         f = p.coarse_factor
         coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
-        return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied)
+        return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied,
+                           None if vx is None else vx.ravel(), None if vy is None else vy.ravel())
+
+    def _pooled(self, points: tuple[np.ndarray, np.ndarray, np.ndarray], res: float, k: int, cy: np.ndarray,
+                cx: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """At the cells (cy, cx): (sum of x offsets, sum of y offsets, count) of the end points in the
+        (2 k + 1)^2 cells around each (k = pool), offsets from that cell's corner (m), and the local wall
+        normal (unit x, unit y, is-a-line) or None when ``line_normals`` is off. Only the requested cells and
+        their neighbours are read.
+
+        Why pool: the occupancy update clears the cells in front of a surface (beams pass through them) but
+        never the cells behind it, so end points placed a little too far (range noise, pose error) leave an
+        occupied cell behind the surface while those placed too short are erased. With per-cell means the
+        walls of the likelihood field then lean away from where they were seen from, the match pushes the
+        robot towards what it looks at (forward while driving) and the map, built from the matched poses,
+        inherits it: a drift along the direction of travel (office: +0.25 % of the distance with perfect
+        odometry). Pooling all end points of the neighbourhood, including the ones in cells that were
+        cleared, puts the wall back at the mean of everything that was measured there.
+
+        Normals: the count-weighted scatter of the cell means in the 5 x 5 neighbourhood (long enough for a
+        wall two cells thick to look like a line); where it is elongated (smaller eigenvalue below
+        ``line_ratio`` times the larger) the cells are a straight wall and the field measures the distance
+        along its normal. Measuring to the mean point of the nearest cell would add a saw-tooth along the
+        wall (up to half a cell between two cells' points): a false along-wall constraint in corridors and a
+        bias wherever the points sit unevenly in their cells."""
+        sx, sy, cnt = (np.asarray(a) for a in points)
+        h, w = cnt.shape
+        if k <= 0 and not self.params.line_normals:
+            return (sx[cy, cx].astype(np.float64), sy[cy, cx].astype(np.float64), cnt[cy, cx].astype(np.float64),
+                    None)
+        r = max(k, 2 if self.params.line_normals else 0)
+        d = np.arange(-r, r + 1)
+        dy, dx = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))
+        yy, xx = cy[:, None] + dy[None, :], cx[:, None] + dx[None, :]  # (U, (2r + 1)^2) neighbours
+        inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+        yy, xx = np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)
+        c = np.where(inside, cnt[yy, xx], 0).astype(np.float64)
+        # offsets from the requested cell's corner: a neighbour (+i, +j) cells away adds count * (i, j) * res
+        ax = np.where(inside, sx[yy, xx], 0) + c * (dx * res)[None, :]
+        ay = np.where(inside, sy[yy, xx], 0) + c * (dy * res)[None, :]
+        if k > 0:
+            m = ((np.abs(dy) <= k) & (np.abs(dx) <= k)).astype(np.float64)
+            out = (ax @ m, ay @ m, c @ m)
+        else:
+            centre = dy.size // 2
+            out = (ax[:, centre], ay[:, centre], c[:, centre])
+        nrm = None
+        if self.params.line_normals:
+            m5 = ((np.abs(dy) <= 2) & (np.abs(dx) <= 2)).astype(np.float64)
+            cs = np.where(c > 0, c, 1.0)
+            n5 = c @ m5
+            ns = np.where(n5 > 0, n5, 1.0)
+            mx, my = (ax @ m5) / ns, (ay @ m5) / ns
+            cxx = ((ax * ax / cs) @ m5) / ns - mx * mx
+            cyy = ((ay * ay / cs) @ m5) / ns - my * my
+            cxy = ((ax * ay / cs) @ m5) / ns - mx * my
+            half_tr, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
+            rad = np.sqrt(diff * diff + cxy * cxy)
+            lmax, lmin = half_tr + rad, half_tr - rad
+            theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the wall
+            line = (n5 >= 3) & (lmax > (0.5 * res) ** 2) & (lmin < self.params.line_ratio * lmax)
+            nrm = (-np.sin(theta), np.cos(theta), line)
+        return out[0], out[1], out[2], nrm
 
     def install(self, arrays: FieldArrays) -> None:
         """Make computed arrays the current field."""
@@ -160,9 +261,35 @@ class LikelihoodField:
         self.generation = inputs.generation
         self.resolution = inputs.resolution
         self.fine, self.coarse, self.n_occupied = arrays.fine, arrays.coarse, arrays.n_occupied
+        self.vx, self.vy = arrays.vx, arrays.vy
         if arrays.fine is not None:
             self.shape = arrays.shape
             self.origin = inputs.crop_origin - self.params.pad * inputs.resolution
+
+    def log_likelihood(self, xy: np.ndarray) -> np.ndarray:
+        """Log-likelihood (n,) of end points at map-frame positions xy (n, 2) (m), as the matcher's fine stage
+        scores them: the vector to the nearest wall point interpolated bilinearly between cell centres (or,
+        with ``vectors`` off, the likelihood itself), then the Gaussian of its length plus the floor. Points
+        off the field get the floor. Raises RuntimeError before the first rebuild."""
+        if self.fine is None:
+            raise RuntimeError("the likelihood field has not been built yet (rebuild it from the grid first)")
+        p = self.params
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        h, w = self.shape
+        g = (xy - self.origin) / self.resolution - 0.5  # cell centres at integer coordinates
+        x0, y0 = np.floor(g[:, 0]), np.floor(g[:, 1])
+        ax, ay = g[:, 0] - x0, g[:, 1] - y0
+        inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+        base = np.where(inside, y0 * w + x0, 0).astype(np.int64)
+        corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (w, (1 - ax) * ay), (w + 1, ax * ay))
+        floor = float(np.log(p.p_floor))
+        if self.vx is not None:
+            vx = sum(c * self.vx[base + d] for d, c in corners)
+            vy = sum(c * self.vy[base + d] for d, c in corners)
+            out = np.log(np.exp(-0.5 * (vx * vx + vy * vy) / p.sigma_hit ** 2) + p.p_floor)
+        else:
+            out = sum(c * self.fine[base + d] for d, c in corners)
+        return np.where(inside, out, floor)
 
     def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
         """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of

@@ -49,6 +49,9 @@ class MotionNoise:
         var_yaw = (rot_per_rad * |dyaw|)^2 + (rot_per_m * d)^2 + rot_rw_m * d + rot_rw_rad * |dyaw|
                   + (yaw_per_s^2) * dt
 
+    Extrapolation past the newest odometry message adds a transient term, see
+    :meth:`extrapolation_covariance`.
+
     The proportional terms cover systematic wheel errors (scale: ``trans_per_m`` = 2 % of the distance;
     track width: ``rot_per_rad`` = 3 % of the turn; a wheel-radius mismatch curves straight lines:
     ``rot_per_m``), the random-walk terms cover wheel slip (a Pioneer-like base with 5 mm/sqrt(m) slip per
@@ -66,6 +69,20 @@ class MotionNoise:
     rot_rw_rad: float = 1e-4  # rad^2 per rad turned
     xy_per_s: float = 0.002  # m / sqrt(s)
     yaw_per_s: float = 0.002  # rad / sqrt(s)
+    extrapolation_v: float = 0.02  # m/s
+    extrapolation_omega: float = 0.1  # rad/s
+
+    def extrapolation_covariance(self, v: float, dt: float) -> np.ndarray:
+        """3x3 covariance (base frame) of a pose extrapolated ``dt`` seconds past the newest odometry with its
+        velocity (v m/s forward): the velocity a wheel-odometry message carries is measured over a short
+        interval and is noisy (``extrapolation_v``, ``extrapolation_omega``: 1-sigma; the defaults are the
+        simulated P3-DX's slip noise seen over one 25 ms step at 0.5 m/s, 0.09 rad/s). A yaw-rate error
+        d_omega turns the pose by d_omega dt and moves it sideways by v d_omega dt^2 / 2. The error is
+        transient: the next odometry message replaces the extrapolation (see ``PoseEstimator.covariance``)."""
+        dt = max(float(dt), 0.0)
+        sv, sw = self.extrapolation_v * dt, self.extrapolation_omega * dt
+        lat = 0.5 * abs(float(v)) * dt * sw
+        return np.array([[sv * sv, 0.0, 0.0], [0.0, lat * lat, lat * sw], [0.0, lat * sw, sw * sw]])
 
     def covariance(self, delta: np.ndarray, dt: float) -> np.ndarray:
         """3x3 covariance of the relative motion ``delta`` (base frame at the start) over ``dt`` seconds."""
@@ -113,6 +130,13 @@ class OdometryBuffer:
     def latest_stamp(self) -> float | None:
         return self._t[-1] if self._t else None
 
+    def extrapolation(self, t: float) -> tuple[float, float]:
+        """(seconds past the newest message that :meth:`pose_at` extrapolates for time ``t``, clipped to
+        ``max_extrapolation``; the newest forward velocity, m/s). (0, 0) when t is inside the buffer."""
+        if not self._t or t <= self._t[-1]:
+            return 0.0, 0.0
+        return min(t - self._t[-1], self.max_extrapolation), self._vel[-1][0]
+
     def add(self, odom: Odometry) -> None:
         pose = np.array([odom.x, odom.y, odom.yaw], dtype=np.float64)
         if not (np.all(np.isfinite(pose)) and np.isfinite(odom.stamp)):
@@ -153,3 +177,35 @@ class OdometryBuffer:
         a = (t - t0) / (t1 - t0)
         yaw = p0[2] + a * float(wrap_angle(p1[2] - p0[2]))
         return np.array([p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), float(wrap_angle(yaw))])
+
+
+def deskew(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, delta: np.ndarray,
+           fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undo the base's motion during a laser sweep (vectorized, no per-beam loop).
+
+    A scanning laser takes beam k at ``stamp + k * time_increment``; while it sweeps (about 19 ms for the
+    UTM-30LX's 270 deg) the base keeps moving, so a scan taken while turning at 60 deg/s is bent by up to
+    1.1 deg. ``delta`` (3,) is the base motion over the whole sweep (base frame at the first beam, e.g. from
+    odometry), ``fraction`` (n,) how far through the sweep each beam was taken (0 .. 1); the base pose at beam
+    k is taken as ``fraction[k] * delta`` (constant twist, to first order). Returns (angles, ranges) of the
+    same end points seen from the laser at the first beam's time (laser frame; NaN / inf ranges unchanged).
+    """
+    angles = np.asarray(angles, dtype=np.float64)
+    ranges = np.asarray(ranges, dtype=np.float64)
+    fraction = np.asarray(fraction, dtype=np.float64)
+    finite = np.isfinite(ranges)
+    r = np.where(finite, ranges, 0.0)
+    mc, ms = np.cos(mount[2]), np.sin(mount[2])
+    # end point in the base frame at the beam's own time
+    la = mount[2] + angles
+    bx, by = mount[0] + r * np.cos(la), mount[1] + r * np.sin(la)
+    # moved by the base's motion up to that beam
+    dx, dy, dth = fraction * delta[0], fraction * delta[1], fraction * delta[2]
+    c, s = np.cos(dth), np.sin(dth)
+    qx, qy = dx + c * bx - s * by, dy + s * bx + c * by
+    # back into the laser frame at the first beam
+    lx, ly = qx - mount[0], qy - mount[1]
+    ex, ey = mc * lx + ms * ly, -ms * lx + mc * ly
+    out_r = np.where(finite, np.hypot(ex, ey), ranges)
+    out_a = np.where(finite, np.arctan2(ey, ex), angles)
+    return out_a, out_r

@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.pose import EstimatorConfig, PoseEstimator
 from glassmap.pose.motion import compose
 from glassmap.types import LaserGeometry, Odometry, PoseEstimate, Scan
@@ -119,10 +120,11 @@ def test_glass_weights_down_weight_beams_ending_on_glass_cells():
     assert mask[iy, ix] and mask.sum() == 1
 
 
-@pytest.mark.parametrize("subcell, limit", [(True, 0.005), (False, None)])
+@pytest.mark.parametrize("subcell, limit", [(True, 0.006), (False, None)])
 def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
     """A box whose walls lie 1 cm off cell centres: with sub-cell wall positions a robot standing still
-    stays within 5 mm; measuring to cell centres drags it about a centimetre (kept as a reference)."""
+    stays within 6 mm after 15 scans (about 1.5 match sigmas); measuring to cell centres drags it further
+    (kept as a reference)."""
     segs = np.array([[-3.013, -2.027, 3.011, -2.027], [3.011, -2.027, 3.011, 2.019],
                      [3.011, 2.019, -3.013, 2.019], [-3.013, 2.019, -3.013, -2.027]])
     est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1,
@@ -194,3 +196,56 @@ def test_motion_filter_matches_and_integrates_only_key_scans():
 def test_bad_keyframe_settings_are_refused():
     with pytest.raises(ValueError, match="keyframe"):
         EstimatorConfig(keyframe_distance=-0.1)
+
+
+def test_the_second_key_scan_is_matched_even_when_the_grid_did_not_grow():
+    """The first field is built as soon as a scan is in the grid, not after field_refresh_scans key scans
+    (those would be placed by odometry alone, and the map would keep their errors)."""
+    segs = room_with_corner()
+    grid = MapGrid(resolution=0.05, origin=(-10.0, -10.0), shape=(400, 400))  # holds the room already
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), keyframe_distance=0.0, keyframe_angle=0.0),
+                        OccupancyGrid(grid))
+    rng = np.random.default_rng(2)
+    for k in range(3):
+        est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
+        est.update(make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng))
+    assert est.occupancy.grid.generation == 0  # the grid never grew: only the new rule rebuilt the field
+    assert est.stats.no_match == 1 and est.stats.matched == 2
+
+
+def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
+    """Cells placed from (0, 0) with position variance 1 cm^2 and yaw variance (0.01 rad)^2: a robot 4 m
+    further along x that matches them inherits the placement's yaw error as a sideways (y) error of
+    4 m * 0.01 rad, correlated with yaw, and no extra error along x."""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    g = est.occupancy.grid
+    g.ensure_contains(np.array([-1.0, -3.0]), np.array([8.0, 3.0]))
+    pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])  # base frame of the robot at (4, 0)
+    pose = np.array([4.0, 0.0, 0.0])
+    cells = g.world_to_cell(pts + pose[:2])
+    sp2, sth2 = 1e-4, 1e-4
+    for name, val in (("pose_var_xy", sp2 + 25 * sth2), ("pose_var_yaw", sth2), ("pose_var_src_x", 0.0),
+                      ("pose_var_src_y", 0.0), ("pose_var_src_xy", sp2)):
+        g[name][cells[:, 1], cells[:, 0]] = val
+    cov = est._matched_map_covariance(pts, pose)
+    assert cov[0, 0] == pytest.approx(sp2, rel=1e-3)
+    assert cov[1, 1] == pytest.approx(sp2 + 16 * sth2, rel=1e-3)  # lever arm 4 m
+    assert cov[1, 2] == pytest.approx(4 * sth2, rel=1e-3) and cov[2, 2] == pytest.approx(sth2, rel=1e-3)
+    assert cov[0, 1] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
+    """Odometry at 10 Hz, scans at 40 Hz: a scan 75 ms after the newest message is predicted with that
+    message's velocity, whose yaw-rate error (0.1 rad/s by default) turns it by up to 7.5 mrad; the reported
+    covariance says so, and drops back when the next message arrives (the filter's own is unchanged)."""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    inf = np.full(GEOM.n_beams, np.inf)
+    est.predict(Odometry(stamp=0.0, x=0.0, y=0.0, yaw=0.0, v=0.5, omega=0.0))
+    e0 = est.update(_scan(inf, 0.0))
+    e1 = est.update(_scan(inf, 0.075))
+    ekf_yaw = est.ekf.cov[2, 2]
+    assert e1.covariance[2, 2] - ekf_yaw == pytest.approx((0.1 * 0.075) ** 2, rel=1e-6)
+    assert e1.covariance[1, 1] > e0.covariance[1, 1] + (0.5 * 0.5 * 0.075 * 0.1 * 0.075) ** 2 * 0.99
+    est.predict(Odometry(stamp=0.1, x=0.05, y=0.0, yaw=0.0, v=0.5, omega=0.0))
+    e2 = est.update(_scan(inf, 0.1))
+    assert e2.covariance[2, 2] == pytest.approx(est.ekf.cov[2, 2] + est.map_cov[2, 2])
