@@ -75,7 +75,7 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
         lines += _stage_lines(r.stages, "")
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    lines.append(f"peak memory: runtime {own:.0f} MiB, emulated devices process {kids:.0f} MiB")
+    lines.append(f"peak memory: runtime {own:.0f} MiB; largest child process (emulated devices, map worker) {kids:.0f} MiB")
     lines.append("targets: replay >= 4x real time (160 scans/s); p99 latency <= 25 ms at 40 Hz")
     try:
         load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
