@@ -90,9 +90,26 @@ def route_driver(waypoints: np.ndarray, speed: float, max_v: float, max_omega: f
             await asyncio.sleep(period)
         with contextlib.suppress(DriverError):
             await rt.command_velocity(0.0, 0.0)
+        await _come_to_rest(rt, speed)
 
     drive.follower = follower  # type: ignore[attr-defined]
     return drive
+
+
+async def _come_to_rest(rt: Runtime, speed: float, timeout: float = 3.0) -> None:
+    """After the last command: wait (at most ``timeout`` emulated s) until the odometry says the robot is at
+    rest, then for two more processed scans, so that the final estimate is of the robot where it stopped
+    (the final pose error compares it with the simulator's pose at the end)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout / speed
+    while loop.time() < end:
+        odom = rt.latest_odom
+        if odom is not None and abs(odom.v) < 1e-3 and abs(odom.omega) < 1e-3:
+            break
+        await asyncio.sleep(0.02 / speed)
+    for _ in range(2):
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(rt.wait_pose(), 1.0)
 
 
 async def run_demo(opts: DemoOptions) -> DemoResult:

@@ -12,7 +12,7 @@ from drivers.pioneer.packets import SYNC0, SYNC1, SYNC2, Cmd, PacketParser, buil
 from drivers.pioneer.sip import SyncReply, decode_sip
 from drivers.transport import open_transport
 from glassmap.sim.robot import DiffDriveRobot, OdometryNoise
-from tests.pioneer.conftest import drive_until, eventually, fast_settings
+from tests.pioneer.conftest import SCALE, drive_until, eventually, fast_settings
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -108,6 +108,17 @@ async def test_simulator_deviations_are_handled(emulator_factory):
         await base.stop()
         await settle(base, emu)
         assert_pose_matches_controller(base.latest, emu)
+
+
+async def test_velocities_are_per_host_second_like_the_stamps(emulator_factory):
+    """An emulator SCALE times faster than real time: the SIP reports 0.3 m/s of emulated time, the client
+    reports SCALE x 0.3 m/s, consistent with the host stamps (what a pose extrapolation multiplies by)."""
+    emu, url = await emulator_factory(real_robot=False)
+    async with PioneerClient.connect(url, settings=fast_settings()) as base:
+        await drive_until(base, 0.3, 0.0, lambda: emu.robot.velocity[0] > 0.29, what="at speed")
+        await drive_until(base, 0.3, 0.0, lambda: base.latest.v > 0.29 * SCALE, what="reported at speed")
+        assert base.latest.v == pytest.approx(0.3 * SCALE, rel=0.05)
+        await base.stop()
 
 
 async def test_real_robot_reports_moving_and_partial_sonar(emulator_factory):
