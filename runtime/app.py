@@ -141,6 +141,7 @@ class Runtime:
         if cfg.output.record:
             meta = recording_metadata(self.time_base, laser_url=cfg.resolved_laser_url(),
                                       base_url=cfg.resolved_base_url(),
+                                      base_time_scale=self.pioneer_options.get("time_scale", 1.0),
                                       mapping=json.dumps(dataclasses.asdict(cfg.mapping)))
             self.recorder = McapRecorder(cfg.output.record, chunk_size=cfg.output.chunk_size,
                                          chunk_interval=cfg.output.chunk_interval,

@@ -116,11 +116,13 @@ class HokuyoReplayDecoder:
 
 
 class PioneerReplayDecoder:
-    """The receive path of :class:`drivers.pioneer.client.PioneerClient` over recorded chunks."""
+    """The receive path of :class:`drivers.pioneer.client.PioneerClient` over recorded chunks.
+    time_scale: the live client's (recorded in the metadata as ``base_time_scale``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, time_scale: float = 1.0) -> None:
         from drivers.pioneer.packets import PacketParser
 
+        self.time_scale = time_scale
         self.parser = PacketParser()
         self.tracker = None
         self.model = None
@@ -150,7 +152,7 @@ class PioneerReplayDecoder:
                     continue
                 model = model_for(info.subclass, info.robot_class)
                 if self.tracker is None or model != self.model:
-                    self.tracker = OdometryTracker(model)
+                    self.tracker = OdometryTracker(model, time_scale=self.time_scale)
                 self.model = model
                 continue
             if pkt.pid not in SIP_IDS or self.tracker is None:
@@ -186,7 +188,7 @@ def iter_raw(path: str | Path) -> Iterator[Scan | Odometry]:
     meta = read_metadata(path)
     tb = TimeBase(int(meta.get("time_offset_ns", "0")))
     laser = HokuyoReplayDecoder()
-    base = PioneerReplayDecoder()
+    base = PioneerReplayDecoder(float(meta.get("base_time_scale", "1")))
     streams = [_events(caps["laser"], "laser")]
     if "base" in caps:
         streams.append(_events(caps["base"], "base"))

@@ -463,7 +463,7 @@ class PioneerClient:
                 self._tracker = None
             self.info, self.model = info, model
             if self._tracker is None:
-                self._tracker = OdometryTracker(model, s.covariance)
+                self._tracker = OdometryTracker(model, s.covariance, s.time_scale)
             await transport.write(command(Cmd.OPEN))
             if s.read_config:
                 await transport.write(command(Cmd.CONFIG))
@@ -741,9 +741,6 @@ class PioneerClient:
                                 right_stall=sip.right_stall, front_bumpers=sip.front_bumpers,
                                 rear_bumpers=sip.rear_bumpers, sonar=dict(self._sonar))
         odom = self._tracker.update(sip, stamp)
-        k = self.settings.time_scale
-        if k != 1.0:  # an emulator running k times faster: velocities per host second, like the stamps
-            odom = replace(odom, v=odom.v * k, omega=odom.omega * k)
         self.latest = odom
         self._first_sip.set()
         for q in list(self._subscribers):

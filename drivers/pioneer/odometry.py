@@ -104,11 +104,17 @@ def signed15(value: int) -> int:
 
 
 class OdometryTracker:
-    """Turns a stream of SIPs into odometry poses (m, rad, odom frame) with a growing covariance."""
+    """Turns a stream of SIPs into odometry poses (m, rad, odom frame) with a growing covariance.
 
-    def __init__(self, model: PioneerModel, noise: CovarianceModel = CovarianceModel()) -> None:
+    time_scale: > 1 for a robot (emulator) running that many times faster than the host clock: velocities
+    are then reported per host second, like the stamps (anything that extrapolates with them needs that).
+    """
+
+    def __init__(self, model: PioneerModel, noise: CovarianceModel = CovarianceModel(),
+                 time_scale: float = 1.0) -> None:
         self.model = model
         self.noise = noise
+        self.time_scale = float(time_scale)
         self._raw: tuple[int, int, int] | None = None
         self.x = self.y = 0.0  # metres
         self.yaw_unwrapped = 0.0  # radians, not wrapped (total turn + initial heading)
@@ -145,8 +151,8 @@ class OdometryTracker:
             self.y += dy
             self.yaw_unwrapped += da
         self._raw = (rx, ry, rth)
-        v = (sip.lvel + sip.rvel) / 2.0 * m.vel_conv / 1000.0
-        omega = (sip.rvel - sip.lvel) / 2.0 * m.vel_conv * m.diff_conv
+        v = (sip.lvel + sip.rvel) / 2.0 * m.vel_conv / 1000.0 * self.time_scale
+        omega = (sip.rvel - sip.lvel) / 2.0 * m.vel_conv * m.diff_conv * self.time_scale
         return Odometry(stamp=stamp, x=self.x, y=self.y, yaw=float(wrap_angle(self.yaw_unwrapped)), v=v,
                         omega=omega, covariance=self.covariance.copy())
 
