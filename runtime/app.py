@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
+from runtime.map_worker import MapWorker, map_messages
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
 from runtime.pipeline import ProcessingStage, ScanResult
-from runtime.map_worker import MapWorker, map_messages
 from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder
 from runtime.shutdown import StopRequest, handle_signals
