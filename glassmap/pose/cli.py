@@ -39,6 +39,12 @@ def register(subparsers) -> None:
     e.add_argument("--every-scan", action="store_true",
                    help="match and integrate every scan (no motion filter / key scans; the behaviour before "
                    "EstimatorConfig.keyframe_*); default: key scans only")
+    e.add_argument("--sweep-motion", action="store_true",
+                   help="simulate the robot's motion during each laser sweep (~19 ms; every beam from where the "
+                   "laser is when it fires); default: all beams of a scan from one pose")
+    e.add_argument("--deskew", action="store_true",
+                   help="the estimator undoes the motion during the sweep with the odometry (EstimatorConfig."
+                   "deskew); meaningful with --sweep-motion")
     e.add_argument("--no-return-range", type=float, default=None,
                    help="how far (m) a no-return beam (+inf) clears free space in the estimator's grid "
                    "(default: OccupancyParams' default)")
@@ -103,6 +109,8 @@ def _eval(args: argparse.Namespace) -> int:
     cfg = replace(EstimatorConfig(), glass_weighting=oracle)
     if args.every_scan:
         cfg = replace(cfg, keyframe_distance=0.0, keyframe_angle=0.0)
+    if args.deskew:
+        cfg = replace(cfg, deskew=True)
     if args.no_return_range is not None:
         if args.no_return_range < 0:
             raise SystemExit(f"--no-return-range must be >= 0 m, got {args.no_return_range}")
@@ -110,12 +118,13 @@ def _eval(args: argparse.Namespace) -> int:
     rows = []
     jobs = [(w, s) for w in worlds for s in seeds]
     for w, s in tqdm(jobs, desc="pose eval", unit="run", disable=args.no_progress):
-        m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle)
+        m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion)
         rows.append(m.as_dict())
         tqdm.write(_line(m.as_dict()))
     os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "pose_eval" + ("_glass_oracle" if oracle else "")
                         + ("_every_scan" if args.every_scan else "")
+                        + ("_sweep" if args.sweep_motion else "") + ("_deskew" if args.deskew else "")
                         + (f"_noret{args.no_return_range:g}" if args.no_return_range is not None else ""))
     _write_csv(stem + ".csv", rows)
     with open(stem + ".json", "w") as f:

@@ -184,14 +184,15 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
 
 def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConfig | None = None, *,
                  causal: bool = True, glass_oracle: bool = False, progress: bool = False,
-                 run_cache: dict | None = None) -> RunMetrics:
-    """Simulate (or take from ``run_cache``) one run and evaluate the estimator on it."""
+                 run_cache: dict | None = None, sweep_motion: bool = False) -> RunMetrics:
+    """Simulate (or take from ``run_cache``) one run and evaluate the estimator on it. ``sweep_motion``: the
+    simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``)."""
     from glassmap.sim.dataset import simulate_run
 
-    key = (world, route, seed)
+    key = (world, route, seed, sweep_motion)
     run = run_cache.get(key) if run_cache is not None else None
     if run is None:
-        run = simulate_run(world, route, seed=seed)
+        run = simulate_run(world, route, seed=seed, sweep_motion=sweep_motion)
         if run_cache is not None:
             run_cache[key] = run
     traj, _ = run_estimator(run, config, causal=causal, glass_oracle=glass_oracle, progress=progress)

@@ -17,7 +17,7 @@ from typing import Iterator
 import numpy as np
 
 from glassmap.sim.laser import LaserParams, simulate_scan
-from glassmap.sim.robot import DiffDriveRobot, OdometryNoise, RobotParams, RouteFollower
+from glassmap.sim.robot import DiffDriveRobot, OdometryNoise, RobotParams, RouteFollower, compose
 from glassmap.sim.world import World, load_world
 from glassmap.types import LaserGeometry, Odometry, Scan
 
@@ -139,18 +139,31 @@ def _params_dict(obj: object) -> dict:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(obj).items()}
 
 
+def _sweep_end_pose(robot: DiffDriveRobot, geometry: LaserGeometry) -> np.ndarray:
+    """Laser pose (map frame) when the last beam of a scan started now is taken: the base moves on with
+    its current true velocity (an arc) for the sweep time, (n - 1) * time_increment."""
+    sweep = geometry.time_increment * (geometry.n_beams - 1)
+    v, om = robot.velocity
+    half = 0.5 * om * sweep
+    delta = np.array([v * sweep * math.cos(half), v * sweep * math.sin(half), om * sweep])
+    return compose(compose(robot.true_pose, delta), np.asarray(robot.params.laser_offset, dtype=np.float64))
+
+
 def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed: int = 0, *,
                  laser_params: LaserParams = LaserParams(), geometry: LaserGeometry = LaserGeometry(),
                  robot_params: RobotParams = RobotParams(), odom_noise: OdometryNoise = OdometryNoise(),
                  scan_rate: float = 40.0, odom_rate: float = 10.0, max_v: float = 0.5,
                  max_omega: float = math.radians(60), max_duration: float = 600.0,
-                 progress: bool = False) -> SimRun:
+                 sweep_motion: bool = False, progress: bool = False) -> SimRun:
     """Drive ``route`` (a route name of the world, waypoints (k, 2) in the map frame, or None = the world's
     default route) from the route's first waypoint, heading along its first leg; record scans at
     ``scan_rate`` Hz and odometry at ``odom_rate`` Hz until the robot has stopped at the last waypoint.
 
     The route follower steers on the true pose (the simulated robot drives where the route says). The same
     ``seed`` gives the same run; the robot's slip noise and the laser noise use independent streams.
+    ``sweep_motion``: each beam is taken from where the laser is when it fires (the robot keeps moving with
+    its current velocity during the ~19 ms sweep; ``laser_poses`` are then the poses at the first beam);
+    default off: all beams of a scan from one pose.
     Raises ValueError if the rates do not divide or the route is not finished within ``max_duration`` s.
     """
     w = load_world(world) if isinstance(world, str) else world
@@ -201,7 +214,8 @@ def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed
             cols["wheel_speeds"].append(robot.wheel_speeds)
             cols["odom_true_poses"].append(robot.true_pose)
         lp = robot.laser_pose()
-        s = simulate_scan(w, lp, laser_rng, laser_params, geometry)
+        end = _sweep_end_pose(robot, geometry) if sweep_motion else None
+        s = simulate_scan(w, lp, laser_rng, laser_params, geometry, end_pose=end)
         cols["scan_stamps"].append(t)
         cols["laser_poses"].append(lp)
         cols["scan_true_poses"].append(robot.true_pose)
@@ -238,7 +252,7 @@ def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed
     arrays = {key: np.concatenate(blocks[key], axis=0) for key in big}
     params = dict(laser=_params_dict(laser_params), robot=_params_dict(robot_params),
                   odometry_noise=_params_dict(odom_noise), scan_rate=scan_rate, odom_rate=odom_rate,
-                  max_v=max_v, max_omega=max_omega)
+                  max_v=max_v, max_omega=max_omega, sweep_motion=sweep_motion)
     return SimRun(world_name=w.name, route_name=route_name, seed=int(seed), route=waypoints, geometry=geometry,
                   scan_stamps=np.array(cols["scan_stamps"]), laser_poses=np.array(cols["laser_poses"]),
                   scan_true_poses=np.array(cols["scan_true_poses"]), odom_stamps=np.array(cols["odom_stamps"]),

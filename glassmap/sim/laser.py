@@ -22,7 +22,7 @@ Frames: ``laser_pose`` is the laser in the map frame; ranges along beams of the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -213,17 +213,43 @@ def cast_pairs(world: World, laser_pose: np.ndarray, geometry: LaserGeometry = L
     return beam[order], seg[order], t[order], cos_inc[order]
 
 
+def _cast_sweep(world: World, pose: np.ndarray, end_pose: np.ndarray, geometry: LaserGeometry, max_range: float,
+                opt: _Optics, chunks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`cast_pairs` for a moving laser: blocks of adjacent beams, each cast from the pose interpolated
+    (position linearly, yaw along the shorter way) at the block's middle beam."""
+    n = geometry.n_beams
+    edges = np.linspace(0, n, max(1, min(int(chunks), n)) + 1).round().astype(np.int64)
+    dyaw = math.remainder(end_pose[2] - pose[2], 2 * math.pi)
+    parts = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b <= a:
+            continue
+        f = (0.5 * (a + b - 1)) / max(n - 1, 1)
+        at = np.array([pose[0] + f * (end_pose[0] - pose[0]), pose[1] + f * (end_pose[1] - pose[1]), pose[2] + f * dyaw])
+        sub = replace(geometry, n_beams=int(b - a), angle_min=geometry.angle_min + a * geometry.angle_increment)
+        bm, sg, tt, ci = cast_pairs(world, at, sub, max_range, opt)
+        parts.append((bm + a, sg, tt, ci))
+    return tuple(np.concatenate(x) for x in zip(*parts))  # type: ignore[return-value]
+
+
 def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: LaserParams = LaserParams(),
-                  geometry: LaserGeometry = LaserGeometry()) -> SimScan:
+                  geometry: LaserGeometry = LaserGeometry(), end_pose=None, sweep_chunks: int = 16) -> SimScan:
     """Simulate one scan from ``laser_pose`` (x, y, yaw of the laser in the map frame; m, rad).
 
-    Motion during the 25 ms revolution is ignored (all beams from the same pose).
+    ``end_pose``: the laser pose when the last beam is taken; beams are then cast from poses interpolated
+    linearly between the two over the sweep (in ``sweep_chunks`` blocks of adjacent beams, each from the
+    pose at its middle beam), as a scanning laser on a moving robot sees the world. None (default): all
+    beams from ``laser_pose`` (motion during the sweep ignored).
     """
     pose = np.asarray(laser_pose, dtype=np.float64)
     n = geometry.n_beams
     p = params
     opt = _optics(world, p)
-    beam, seg, t, cos_inc = cast_pairs(world, pose, geometry, p.max_reading, opt)
+    if end_pose is None:
+        beam, seg, t, cos_inc = cast_pairs(world, pose, geometry, p.max_reading, opt)
+    else:
+        beam, seg, t, cos_inc = _cast_sweep(world, pose, np.asarray(end_pose, dtype=np.float64), geometry,
+                                            p.max_reading, opt, sweep_chunks)
     kind = opt.kind[seg]
     glass = kind == _GLASS
     alpha = np.arccos(cos_inc)

@@ -90,3 +90,16 @@ def test_default_routes_are_driven_without_collision(name):
     np.testing.assert_allclose(run.scan_true_poses[-1, :2], w.route()[-1], atol=0.1)
     if name == "office":
         assert 60.0 <= run.duration <= 120.0
+
+
+def test_sweep_motion_moves_the_late_beams_only(run: SimRun):
+    """With sweep motion the robot drives on during each sweep: while it moves along the facade, the
+    last beams (taken ~19 ms after the first) see the world from a point up to v * 19 ms further on; the
+    first beam of each scan is taken at the recorded laser pose, as without it."""
+    swept = simulate_run(load_world("office"), ROUTE, seed=7, sweep_motion=True)
+    assert swept.params["sweep_motion"] is True and run.params["sweep_motion"] is False
+    np.testing.assert_array_equal(swept.laser_poses, run.laser_poses)
+    moving = np.flatnonzero(np.hypot(*np.diff(run.laser_poses[:, :2], axis=0).T) > 0.01)
+    i = int(moving[len(moving) // 2])
+    np.testing.assert_allclose(swept.true_range[i, :30], run.true_range[i, :30], atol=3e-3)
+    assert np.nanmax(np.abs(swept.true_range[i, -60:] - run.true_range[i, -60:])) > 3e-3

@@ -65,6 +65,23 @@ def test_pose_and_yaw_rotate_the_scan():
     assert np.isinf(s.ranges[beam(0.0)])
 
 
+def test_sweep_motion_takes_each_beam_from_where_the_laser_is():
+    """Moving 0.3 m towards a wall at x = 5 during the sweep: the first beam (-135 deg) is taken at the start
+    pose, the last (+135 deg) 0.3 m closer; a beam in the middle about half way. Standing still, the swept
+    scan equals the single-pose scan."""
+    w = world_of(((5.0, -20.0), (5.0, 20.0), "wall"), ((-5.0, -20.0), (-5.0, 20.0), "wall"))
+    start, end = np.array([0.0, 0.0, 0.0]), np.array([0.3, 0.0, 0.0])
+    moving = simulate_scan(w, start, np.random.default_rng(0), EXACT, end_pose=end, sweep_chunks=GEOM.n_beams)
+    for k in (0, GEOM.n_beams - 1):
+        x = start[0] + k / (GEOM.n_beams - 1) * 0.3
+        wall = 5.0 if math.cos(ANG[k]) > 0 else -5.0
+        assert moving.true_range[k] == pytest.approx((wall - x) / math.cos(ANG[k]), abs=1e-9)
+    k = beam(0.0)
+    assert moving.true_range[k] == pytest.approx(5.0 - 0.15, abs=1e-3)
+    still = simulate_scan(w, start, np.random.default_rng(0), EXACT, end_pose=start)
+    np.testing.assert_allclose(still.true_range, scan(w).true_range, atol=1e-9)
+
+
 def test_segment_across_the_back_of_the_scanner():
     # x = -1 from y -5 to 5 spans bearings -101..+101 deg through 180: only the outer beams see it
     w = world_of(((-1.0, -5.0), (-1.0, 5.0), "wall"))
