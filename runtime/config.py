@@ -87,6 +87,9 @@ class MappingConfig:
                                          "pose: 'mapper' (glass-aware: cells hit by glass-classified beams "
                                          "are kept occupied and not cleared) or 'estimator' (plain)")
     glass_weighting: bool = _f(False, "scan matching down-weights beams ending on likely glass (the glass map)")
+    deskew: bool = _f(True, "undo the robot's motion during each laser sweep with the odometry before scan "
+                            "matching (a real laser sweeps its 270 deg in ~19 ms; the demo's emulated laser "
+                            "does not, so the demo turns this off)")
     max_free_range: float = _f(20.0, "a beam clears free space at most this far (m); glass lets beams through")
     no_return_range: float = _f(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
                                      "(near glass 'no return' often means the pulse was reflected away; 20 m "

@@ -137,6 +137,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
         m = cfg.mapping
         m.initial_x, m.initial_y, m.initial_yaw = (float(v) for v in world.start_pose)
         m.laser_x, m.laser_y, m.laser_yaw = (float(v) for v in params.laser_offset)
+        m.deskew = False  # the emulated laser takes all beams of a scan from one pose (no sweep motion)
         m.registration = opts.registration or m.registration
         m.window = opts.window or m.window
         cfg.output.out_dir = str(out)

@@ -54,7 +54,7 @@ class MappingProcessor:
 
         ecfg = estimator_config or EstimatorConfig()
         ecfg = replace(ecfg, laser_mount=(mapping.laser_x, mapping.laser_y, mapping.laser_yaw),
-                       glass_weighting=mapping.glass_weighting,
+                       glass_weighting=mapping.glass_weighting, deskew=mapping.deskew,
                        keyframe_distance=mapping.keyframe_distance,
                        keyframe_angle=math.radians(mapping.keyframe_angle_deg),
                        keyframe_max_scans=mapping.keyframe_max_scans,

@@ -21,6 +21,14 @@ def test_defaults_are_the_hardware_defaults():
     assert cfg.resolved_laser_url() == "tcp://192.168.0.10:10940"
     assert cfg.resolved_base_url() == "serial:///dev/ttyUSB0?baud=9600"
     assert cfg.base.enable_motors is False  # the runtime never moves the robot unless asked
+    assert cfg.mapping.deskew is True  # a real laser sweeps while the robot moves
+
+
+def test_deskew_reaches_the_estimator():
+    from runtime.processor import MappingProcessor
+
+    assert MappingProcessor(parse([]).mapping).estimator.config.deskew is True
+    assert MappingProcessor(parse(["--mapping.deskew", "false"]).mapping).estimator.config.deskew is False
 
 
 def test_toml_then_flags(tmp_path):
