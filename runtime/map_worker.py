@@ -14,25 +14,41 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import logging
 import multiprocessing
 import os
 import time
+from concurrent.futures.process import BrokenProcessPool
 
 from glassmap.mapping import MapCopy
 
+log = logging.getLogger(__name__)
+
 
 class MapWorker:
-    """One helper process for map exports and map messages; use from the event loop."""
+    """One helper process for map exports and map messages; use from the event loop.
+
+    If the process cannot start (spawning re-imports the main module, which is impossible for code fed to
+    ``python -`` or run in some notebooks), the work is done in a thread of this process instead, with a
+    warning: everything still works, scans are only slower while maps are exported."""
 
     def __init__(self) -> None:
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self.in_process = False
 
     async def start(self) -> None:
         """Start the process and wait until it has imported what it needs (~1-2 s, once)."""
-        if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(
-                1, mp_context=multiprocessing.get_context("spawn"), initializer=_init, initargs=(os.getpid(),))
-        await self._run(os.getpid)
+        if self._pool is not None or self.in_process:
+            return
+        self._pool = concurrent.futures.ProcessPoolExecutor(
+            1, mp_context=multiprocessing.get_context("spawn"), initializer=_init, initargs=(os.getpid(),))
+        try:
+            await asyncio.get_running_loop().run_in_executor(self._pool, os.getpid)
+        except BrokenProcessPool as exc:
+            self.shutdown()
+            self.in_process = True
+            log.warning("the map worker process did not start (%s); maps are made in a thread of this process "
+                        "instead (scans are slower while maps are exported)", exc)
 
     async def export(self, maps: MapCopy, out_dir: str, stem: str) -> dict[str, str]:
         """Write PNG, .npy + .json, PGM + YAML (see :func:`glassmap.mapping.export_maps`); returns the paths.
@@ -49,8 +65,9 @@ class MapWorker:
             self._pool = None
 
     async def _run(self, fn, *args):
+        await self.start()
         if self._pool is None:
-            await self.start()
+            return await asyncio.to_thread(fn, *args)
         return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
 
 

@@ -94,3 +94,28 @@ def test_worker_ends_when_the_runtime_process_is_killed():
             return
         time.sleep(0.1)
     pytest.fail(f"map worker {worker_pid} still running 10 s after the runtime process was killed")
+
+
+def test_falls_back_to_a_thread_when_the_process_cannot_start(tmp_path):
+    """Code fed to ``python -`` cannot be re-imported by a spawned process: the maps are then made in a
+    thread, with a warning, and still written."""
+    script = textwrap.dedent(f"""
+        import asyncio
+        from runtime.map_worker import MapWorker
+        from tests.runtime.test_map_worker import small_maps
+
+        async def main():
+            w = MapWorker()
+            await w.start()
+            paths = await w.export(small_maps(), {str(tmp_path)!r}, "s")
+            w.shutdown()
+            print(w.in_process, paths["png"])
+
+        asyncio.run(main())
+    """)
+    out = subprocess.run([sys.executable, "-"], input=script, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    in_process, png = out.stdout.split()
+    assert in_process == "True" and Path(png).is_file()
+    assert "map worker process did not start" in out.stderr
