@@ -305,9 +305,10 @@ class HokuyoClient:
         samples = []
         try:
             for _ in range(self.tm_samples):
+                # t1 is when the reply's bytes arrived, not when this coroutine resumed (on a busy machine
+                # that can be milliseconds later; a replay of the recorded bytes sees the arrival time)
                 t0 = time.monotonic()
-                reply = await self._request(link, "TM", "1")
-                t1 = time.monotonic()
+                reply, t1 = await self._request_at(link, "TM", "1")
                 samples.append(RoundTrip(t0, t1, link.unwrap.unwrap(reply.time_ms) / 1000.0))
         finally:
             with contextlib.suppress(ScipStatusError):
@@ -331,20 +332,25 @@ class HokuyoClient:
 
     async def _request(self, link: _Link, command: str, params: str = "", string: str = "", *,
                        ok: tuple[str, ...] = ("00",), timeout: float | None = None) -> Reply:
+        return (await self._request_at(link, command, params, string, ok=ok, timeout=timeout))[0]
+
+    async def _request_at(self, link: _Link, command: str, params: str = "", string: str = "", *,
+                          ok: tuple[str, ...] = ("00",), timeout: float | None = None) -> tuple[Reply, float]:
+        """Send a command and wait for its reply; returns (reply, host time the reply's bytes arrived)."""
         line = encode_command(command, params, string)
         fut = asyncio.get_running_loop().create_future()
         entry = (line[:-1], fut)
         link.pending.append(entry)
         try:
             await link.transport.write(line)
-            reply = await asyncio.wait_for(fut, timeout or self.timeout)
+            reply, arrived = await asyncio.wait_for(fut, timeout or self.timeout)
         except asyncio.TimeoutError:
             raise DeviceTimeout(f"{self.url}: no reply to {line[:-1].decode()!r} within "
                                 f"{timeout or self.timeout:.2f} s (sensor busy, hung or rebooting?)") from None
         finally:
             with contextlib.suppress(ValueError):
                 link.pending.remove(entry)
-        return reply.raise_for_status(ok)
+        return reply.raise_for_status(ok), arrived
 
     async def _drop_link(self) -> None:
         link, self._link = self._link, None
@@ -443,7 +449,7 @@ class HokuyoClient:
             return
         for entry in link.pending:
             if entry[0] == item.echo.raw and not entry[1].done():
-                entry[1].set_result(item)
+                entry[1].set_result((item, now))
                 link.pending.remove(entry)
                 return
         if item.command in SCAN_COMMANDS and item.status != "00":

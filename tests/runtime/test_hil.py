@@ -124,8 +124,16 @@ def test_replay_through_the_drivers_gives_the_same_maps(demo):
     assert r.scans == res.summary.scans_processed
     again = np.load(r.exports["npy"])
     assert again.shape == live.shape
-    both = np.isfinite(live) & np.isfinite(again)
-    assert both.sum() >= 0.95 * max(np.isfinite(live).sum(), np.isfinite(again).sum())
+    # Stamps a fraction of a millisecond apart move poses by fractions of a millimetre, which flips
+    # single cells across cell boundaries: occupied cells must have an occupied cell within one cell in
+    # the other map, and the cells occupied in both must carry the same glass label.
+    from scipy import ndimage
+
+    occ_live, occ_again = np.isfinite(live), np.isfinite(again)
+    near = np.ones((3, 3), dtype=bool)
+    assert (occ_live & ndimage.binary_dilation(occ_again, near)).sum() >= 0.97 * occ_live.sum()
+    assert (occ_again & ndimage.binary_dilation(occ_live, near)).sum() >= 0.97 * occ_again.sum()
+    both = occ_live & occ_again
     assert ((live[both] > 0.5) == (again[both] > 0.5)).mean() >= 0.98
     est = res.estimated_final_pose
     assert np.hypot(r.final_pose[0] - est[0], r.final_pose[1] - est[1]) < 0.02
