@@ -84,7 +84,7 @@ def _init(parent_pid: int) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-    for name in ("matplotlib.image", "glassmap.render", "runtime.messages", "runtime.processor"):
+    for name in ("matplotlib.image", "glassmap.render", "runtime.messages"):
         importlib.import_module(name)
 
 
@@ -92,10 +92,10 @@ def map_messages(maps: MapCopy, stamp_ns: int, frame_id: str) -> tuple[bytes, by
     """CDR of the /map (nav_msgs/OccupancyGrid) and /glass/map (foxglove_msgs/Grid) messages of ``maps``
     (in whatever process calls it)."""
     from runtime import messages as M
-    from runtime.processor import MapSnapshot
 
-    snap = MapSnapshot.of(maps)
+    g = maps.grid
+    origin, res = (float(g.origin[0]), float(g.origin[1])), float(g.resolution)
     ts = M.typestore()
-    occ = M.occupancy_grid_msg(snap.occupancy_p, snap.origin, snap.resolution, stamp_ns, frame_id)
-    glass = M.glass_grid_msg(snap.confidence, snap.origin, snap.resolution, stamp_ns, frame_id)
+    occ = M.occupancy_grid_msg(maps.occupancy.probability(), origin, res, stamp_ns, frame_id)
+    glass = M.glass_grid_msg(maps.confidence_map(), origin, res, stamp_ns, frame_id)
     return (bytes(ts.serialize_cdr(occ, M.TOPICS["/map"])), bytes(ts.serialize_cdr(glass, M.TOPICS["/glass/map"])))

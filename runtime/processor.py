@@ -8,30 +8,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from glassmap.types import Odometry, Scan
 from runtime.config import MappingConfig
 from runtime.pipeline import ScanResult
-
-
-@dataclass
-class MapSnapshot:
-    """Copies of the maps at one moment (map frame, row = y): p(occupied) and the glass confidence map."""
-
-    occupancy_p: np.ndarray
-    confidence: np.ndarray
-    origin: tuple[float, float]
-    resolution: float
-
-    @classmethod
-    def of(cls, mapper) -> "MapSnapshot":
-        """From a :class:`~glassmap.mapping.GlassMapper` or a :class:`~glassmap.mapping.MapCopy`."""
-        g = mapper.grid
-        return cls(occupancy_p=mapper.occupancy.probability(), confidence=mapper.confidence_map(),
-                   origin=(float(g.origin[0]), float(g.origin[1])), resolution=float(g.resolution))
 
 
 class MappingProcessor:
