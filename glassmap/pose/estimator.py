@@ -36,11 +36,10 @@ from glassmap.types import Odometry, PoseEstimate, Scan
 log = logging.getLogger(__name__)
 
 GLASS_LAYER = "glass"
-MAP_VAR_LAYER = "pose_var_xy"
-MAP_VAR_YAW_LAYER = "pose_var_yaw"
-# the placement a cell keeps (the one with the smallest pose_var_xy): laser position (map frame, m) and the
-# position variance (m^2) of that laser pose
-MAP_SRC_LAYERS = ("pose_var_src_x", "pose_var_src_y", "pose_var_src_xy")
+MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under its best placement
+MAP_VAR_YAW_LAYER = "pose_var_yaw"  # that placement's map rotation variance (rad^2), inf: no placement yet
+# ... the pivot (map frame, m) of that rotation, and the shift variance (m^2 per axis)
+MAP_SRC_LAYERS = ("pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift")
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 
 
@@ -50,11 +49,11 @@ class EstimatorConfig:
 
     laser_mount: laser pose (x, y, yaw) in the base frame (the simulated and the real Pioneer carry the
         Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here. The
-        map frame is defined by the first pose, so its uncertainty is (almost) zero: 1 mm, 1 mrad (not 0,
-        to keep the filter's covariance positive definite). Every cell of the map inherits at least this
-        variance (see the class docstring), so a larger value is a floor under every reported covariance:
-        the former (5 mm, 0.2 deg) made the covariance of runs that stay accurate (room, glass corridor)
-        twice too wide (NEES 1.0-1.5). Set it larger when the start pose is only known in another frame.
+        map frame is defined by the first pose, so its uncertainty is zero: 0.1 mm, 0.1 mrad (not 0, to
+        keep the filter's covariance positive definite). The map inherits it: an initial yaw variance is a
+        rotation of the whole map about the start (see :meth:`PoseEstimator._store_map_variance`), so 1 mrad
+        (the former default) reported 2 cm at the far end of ``office`` for an error that does not exist.
+        Set it larger when the start pose is only known in another frame.
     range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
         (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
     keyframe_distance, keyframe_angle, keyframe_max_scans: motion filter. Every scan gets the EKF prediction
@@ -84,13 +83,16 @@ class EstimatorConfig:
         stamp (there is nothing to undo there, and ``glassmap pose eval`` cannot measure the benefit); turn
         it on with a real laser whose ``Scan.stamp`` is the time of the first beam.
     map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
-        map built so far (see :class:`PoseEstimator`): cells remember the variance of the pose that placed
-        them, and a match inherits the variance of the cells it matched.
+        map built so far (see :class:`PoseEstimator`): cells remember the error model of the pose that
+        placed them, and a match inherits that of the cells it matched.
+    correlated_matches: report the filter's covariance allowing for the error that consecutive matches
+        share (``PoseEKF.actual_cov``, correlation = share of the previous match's cells this match uses);
+        off, the filter's own covariance (which averages every match as independent) is reported.
     """
 
     laser_mount: tuple[float, float, float] = (0.1, 0.0, 0.0)
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    initial_sigma: tuple[float, float, float] = (0.001, 0.001, 0.001)
+    initial_sigma: tuple[float, float, float] = (1e-4, 1e-4, 1e-4)
     motion: MotionNoise = dc_field(default_factory=MotionNoise)
     matcher: MatcherConfig = dc_field(default_factory=MatcherConfig)
     likelihood: FieldParams = dc_field(default_factory=FieldParams)
@@ -110,6 +112,7 @@ class EstimatorConfig:
     integrate: bool = True
     deskew: bool = False
     map_uncertainty: bool = True
+    correlated_matches: bool = True
     subcell_walls: bool = True
 
     def __post_init__(self) -> None:
@@ -118,6 +121,16 @@ class EstimatorConfig:
                              f"{self.keyframe_distance}, {self.keyframe_angle}, {self.keyframe_max_scans}")
         if self.field_refresh_scans < 1:
             raise ValueError(f"field_refresh_scans must be >= 1, got {self.field_refresh_scans}")
+
+
+@dataclass(frozen=True)
+class MapRegion:
+    """Error model of a map region (map frame): a shift of variance shift_var (m^2 per axis) plus a rotation
+    of variance yaw_var (rad^2) about pivot (2,) (m)."""
+
+    shift_var: float
+    yaw_var: float
+    pivot: np.ndarray
 
 
 @dataclass
@@ -143,17 +156,17 @@ class PoseEstimator:
     ``predict(odom)`` buffers wheel odometry (any rate); ``update(scan)`` returns the :class:`PoseEstimate`
     at ``scan.stamp`` and integrates the scan into ``occupancy`` (shared with the glass mapper).
 
-    Covariance. The EKF tracks the pose relative to the map built so far (``ekf.cov``: odometry noise
-    and match covariances); that alone would be overconfident, because the map itself is only as good as
-    the poses that built it and every scan matched against the same part of the map shares its error.
-    So every end-point cell stores the variance it was placed with (layers ``pose_var_xy``: sigma_xy^2 +
-    (r sigma_theta)^2 of the reported covariance, with sigma_xy^2 the mean of the two position eigenvalues;
-    the smallest seen is kept, with the laser position and sigma_xy^2 of that placement in
-    ``pose_var_src_x/_y/_xy``; ``pose_var_yaw`` keeps the smallest sigma_theta^2), a match reads the
-    covariance of the map region under its end points (``map_cov``, see :meth:`_matched_map_covariance`:
-    the placement's shift plus its yaw error times the robot's lever arm from the placing position), and
-    the reported covariance is ``ekf.cov + map_cov``. Exploring new ground makes it grow like a random
-    walk; coming back to well-known ground makes it shrink again.
+    Covariance. The EKF tracks the pose relative to the map built so far (odometry noise and match
+    covariances; ``ekf.actual_cov`` also counts the error consecutive matches share, see
+    :mod:`glassmap.pose.filter`); that alone would be overconfident, because the map itself is only as
+    good as the poses that built it. So every end-point cell stores the error model of its best placement
+    (the one that placed the cell itself most precisely): a shift (``pose_var_shift``, m^2 per axis) and a
+    rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a match reads the model
+    of the cells under its end points (``map_cov``, ``map_region``: :meth:`_matched_map_covariance`), and
+    the reported covariance is ``ekf.actual_cov + map_cov``. New cells inherit the matched region's
+    rotation about its pivot (:meth:`_store_map_variance`), so along a corridor the sideways uncertainty
+    grows linearly with the distance from where the map's direction error came from; coming back to
+    well-known ground makes it shrink again.
     """
 
     def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
@@ -176,6 +189,8 @@ class PoseEstimator:
         self._executor: ThreadPoolExecutor | None = None
         self._pending_field: Future | None = None  # a field rebuild running in the worker thread
         self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
+        self.map_region: MapRegion | None = None  # its error model (None before the first match)
+        self._matched_keys: np.ndarray | None = None  # cells (map-frame keys) under the last match's points
         self._extrapolated = (0.0, 0.0)  # (s past the newest odometry, v m/s) of the last prediction
         if config.subcell_walls:
             for name in HIT_LAYERS:
@@ -276,10 +291,11 @@ class PoseEstimator:
                 st.gated += 1
                 log.debug("scan %d: match rejected by the gate (d2 = %.1f)", scan.seq, d2)
             else:
-                self.ekf.correct(res.pose, res.covariance)
+                rho = self._match_overlap(pts, res.pose) if cfg.correlated_matches else 0.0
+                self.ekf.correct(res.pose, res.covariance, rho)
                 st.matched += 1
                 if cfg.map_uncertainty:
-                    self.map_cov = self._matched_map_covariance(pts, self.ekf.pose)
+                    self.map_cov, self.map_region = self._matched_map_covariance(pts, self.ekf.pose)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -352,6 +368,19 @@ class PoseEstimator:
         state["_executor"] = None
         return state
 
+    def _match_overlap(self, pts: np.ndarray, pose: np.ndarray) -> float:
+        """Share (0..1) of the grid cells under this match's end points (base-frame pts at pose) that the
+        previous match's end points fell in too: the correlation of the two matches' errors (they share
+        the error of the map where they overlap). Cells are keyed by map-frame position, so a grown grid
+        does not change them."""
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        keys = np.floor((pose[:2] + pts @ np.array([[c, s], [-s, c]])) / self.occupancy.grid.resolution)
+        keys = np.unique(keys.astype(np.int64) @ np.array([1, 1 << 32], dtype=np.int64))
+        prev, self._matched_keys = self._matched_keys, keys
+        if prev is None or keys.size == 0:
+            return 0.0
+        return float(np.isin(keys, prev).mean())
+
     def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
         """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
@@ -370,69 +399,86 @@ class PoseEstimator:
             np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
 
     # ------------------------------------------------------------------ map uncertainty
-    def _matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def _matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
         """3x3 covariance (x, y, yaw; map frame) of the map region under the matched end points (base-frame
-        pts at pose).
+        pts at pose), and that region's error model (None when no matched cell has one).
 
-        A cell placed from laser position P (position variance sigma_P^2, yaw variance sigma_th^2) is off by
-        the error of that placement: a shift plus a rotation by d_th about P. A robot at X matched against
-        it inherits both: position error shift + d_th * u with u = perp(X - P) (the lever arm of the robot,
-        not the cell's own r^2 sigma_th^2), yaw error d_th. Per cell the covariance is therefore
-        diag(sigma_P^2, sigma_P^2, 0) + sigma_th^2 [u; 1][u; 1]^T: anisotropic (a yaw error of the map
-        behind the robot moves it sideways, not along the corridor) and correlated with yaw. The region's
-        covariance is the mean over the matched cells without the quarter with the largest trace (a few
-        cells placed from far away would dominate a plain mean)."""
+        A cell's error is a rigid displacement of the map around it: a shift (variance s per axis) plus a
+        rotation d_th (variance v) about a pivot A (layers ``pose_var_shift``, ``pose_var_yaw``,
+        ``pose_var_pivot_x/_y``; see :meth:`_store_map_variance`). A robot at X matched against it inherits
+        both: position error shift + d_th * u with u = perp(X - A), yaw error d_th, so per cell
+        diag(s, s, 0) + v [u; 1][u; 1]^T: anisotropic (a yaw error of the map far behind the robot moves it
+        sideways, not along the corridor) and correlated with yaw. The matched cells share their error (they
+        were placed by a chain of matches; measured on ``office``, the mean of the cells' true errors is as
+        large as each), so the region moves as they all do: by mean(sqrt(s)) along each axis and a rotation
+        of mean(sqrt(v)) about the sqrt(v)-weighted mean pivot. (A mean of the variances would let the few
+        cells placed from far away dominate.)"""
         g = self.occupancy.grid
         c, s = np.cos(pose[2]), np.sin(pose[2])
         xy = pose[:2] + pts @ np.array([[c, s], [-s, c]])
         cells = g.world_to_cell(xy)
         ok = g.in_bounds(cells)
         cy, cx = cells[ok, 1], cells[ok, 0]
-        vxy = g[MAP_VAR_LAYER][cy, cx].astype(np.float64)
         vyaw = g[MAP_VAR_YAW_LAYER][cy, cx].astype(np.float64)
-        fin = np.isfinite(vxy) & np.isfinite(vyaw)
+        fin = np.isfinite(vyaw)
         if not fin.any():
-            return self.map_cov
-        vxy, vyaw, xy = vxy[fin], vyaw[fin], xy[ok][fin]
-        src = np.stack([g[MAP_SRC_LAYERS[0]][cy, cx][fin], g[MAP_SRC_LAYERS[1]][cy, cx][fin]], axis=1)
-        sp2 = g[MAP_SRC_LAYERS[2]][cy, cx][fin].astype(np.float64)  # position variance of the placing pose
-        lever = self.laser_pose_of(pose)[:2] - src  # (m, 2): robot relative to the placing position
-        v = np.stack([-lever[:, 1], lever[:, 0], np.ones(len(sp2))], axis=1)  # d(error)/d(d_th)
-        covs = vyaw[:, None, None] * v[:, :, None] * v[:, None, :]
-        covs[:, 0, 0] += sp2
-        covs[:, 1, 1] += sp2
-        tr = np.trace(covs, axis1=1, axis2=2)
-        keep = tr <= np.quantile(tr, 0.75)
-        out = covs[keep].mean(axis=0)
-        return 0.5 * (out + out.T)
+            return self.map_cov, self.map_region
+        cy, cx, vyaw = cy[fin], cx[fin], vyaw[fin]
+        pivot = np.stack([g[MAP_SRC_LAYERS[0]][cy, cx], g[MAP_SRC_LAYERS[1]][cy, cx]], axis=1).astype(np.float64)
+        shift = g[MAP_SRC_LAYERS[2]][cy, cx].astype(np.float64)
+        sv, ss = np.sqrt(np.maximum(vyaw, 0.0)), np.sqrt(np.maximum(shift, 0.0))
+        if sv.sum() > 0:
+            centre = (sv @ pivot) / sv.sum()  # one rotation of sd mean(sv) about here moves every cell as all did
+        else:
+            centre = pivot.mean(axis=0)
+        region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre)
+        lever = self.laser_pose_of(pose)[:2] - centre  # the robot relative to the region's pivot
+        u = np.array([-lever[1], lever[0], 1.0])  # d(error)/d(d_th)
+        out = region.yaw_var * np.outer(u, u)
+        out[0, 0] += region.shift_var
+        out[1, 1] += region.shift_var
+        return out, region
 
     def _store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
-        """Give the end-point cells of this scan the variance of the reported pose, sigma_xy^2 + r^2
-        sigma_th^2 at range r, and the laser position it was placed from, where that is smaller than what
-        the cell holds (the best placement is kept); the yaw variance layer keeps the smallest sigma_th^2."""
+        """Give the end-point cells of this scan the error model of their placement where its own variance
+        (of the cell's position) is smaller than what the cell holds (the best placement is kept).
+
+        The placement's error is that of the matched region (shift s_R, rotation v_R about A_R) plus the
+        filter's error relative to it (``ekf.actual_cov``: shift, and a rotation about the laser position X).
+        The two rotations are stored as one, of variance v = v_R + P_th about the variance-weighted pivot
+        A = (v_R A_R + P_th X) / v, the rest going into the shift. The pivot is inherited, not reset to X:
+        a wall extended from a matched wall keeps its direction error, so along a corridor the sideways
+        error grows linearly with the distance from where that error came from (measured on ``office``:
+        1 mm per metre with glass on one side), not like a random walk."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
         if not hit.any():
             return
         g = self.occupancy.grid
-        tot = self.ekf.cov + self.map_cov  # (after the match: the extrapolation error is matched away)
-        sxy2 = 0.5 * float(np.trace(tot[:2, :2]))
-        sth2 = float(tot[2, 2])
         lp = self.laser_pose_of(self.ekf.pose)
+        x = lp[:2]
+        p = self.ekf.actual_cov
+        pth = float(p[2, 2])
+        reg = self.map_region if self.map_region is not None else MapRegion(0.0, 0.0, x)
+        vyaw = reg.yaw_var + pth
+        pivot = (reg.yaw_var * reg.pivot + pth * x) / vyaw if vyaw > 0 else x
+        # the shift per axis: the region's, the filter's, and the spread of the two pivots about the new one
+        shift = (reg.shift_var + 0.5 * float(np.trace(p[:2, :2]))
+                 + 0.5 * (reg.yaw_var * float(np.sum((reg.pivot - pivot) ** 2)) + pth * float(np.sum((x - pivot) ** 2))))
         r = ranges[hit]
         a = lp[2] + angles[hit]
-        cells = g.world_to_cell(lp[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
+        end = x + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+        cells = g.world_to_cell(end)
         ok = g.in_bounds(cells)
-        cells, r = cells[ok], r[ok]
+        cells, end = cells[ok], end[ok]
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        var = (sxy2 + r * r * sth2).astype(np.float32)
-        lay, lay_yaw = g[MAP_VAR_LAYER].reshape(-1), g[MAP_VAR_YAW_LAYER].reshape(-1)
+        var = (shift + vyaw * np.sum((end - pivot) ** 2, axis=1)).astype(np.float32)  # the cell's own
+        lay = g[MAP_VAR_LAYER].reshape(-1)
         before = lay[flat]
         np.minimum.at(lay, flat, var)
-        upd = flat[lay[flat] < before]  # cells this scan placed better than before (all from pose lp)
-        np.minimum.at(lay_yaw, flat, np.float32(sth2))
-        g[MAP_SRC_LAYERS[0]].reshape(-1)[upd] = np.float32(lp[0])
-        g[MAP_SRC_LAYERS[1]].reshape(-1)[upd] = np.float32(lp[1])
-        g[MAP_SRC_LAYERS[2]].reshape(-1)[upd] = np.float32(sxy2)
+        upd = flat[lay[flat] < before]  # cells this scan placed better than before
+        for name, val in ((MAP_VAR_YAW_LAYER, vyaw), (MAP_SRC_LAYERS[0], pivot[0]), (MAP_SRC_LAYERS[1], pivot[1]),
+                          (MAP_SRC_LAYERS[2], shift)):
+            g[name].reshape(-1)[upd] = np.float32(val)
 
     # ------------------------------------------------------------------ outputs
     def covariance(self) -> np.ndarray:
@@ -440,7 +486,7 @@ class PoseEstimator:
         the scan came after the newest odometry message, the error of extrapolating with that message's
         noisy velocity (:meth:`MotionNoise.extrapolation_covariance`; transient: the next message replaces
         the extrapolated motion, so it is not added to the filter's state covariance)."""
-        cov = self.ekf.cov + self.map_cov
+        cov = self.ekf.actual_cov + self.map_cov
         dt, v = self._extrapolated
         if dt > 0:
             c, s = np.cos(self.ekf.pose[2]), np.sin(self.ekf.pose[2])

@@ -3,6 +3,15 @@
 Prediction composes the odometry increment (base frame) onto the state and propagates the covariance with
 the SE(2) Jacobians; correction fuses a full-pose measurement (the scan match) with its covariance, using
 the Joseph form so the covariance stays symmetric positive definite.
+
+Correlated measurements. The filter's gain treats every match as independent, but consecutive scans
+matched against the same map cells share part of their error, and averaging them does not remove it. So
+the filter also carries ``actual_cov``, the covariance of its error when a match's error has correlation
+``rho`` with the previous match's (a "consider" covariance, as in the Schmidt-Kalman filter: the estimate
+and the gain are unchanged, only the covariance is honest about them). With ``cross`` = Cov(state error,
+previous match error), a correction with gain K gives
+``actual_cov = (I-K) P (I-K)^T + K R K^T + (I-K) rho cross K^T + K rho cross^T (I-K)^T`` and
+``cross = (I-K) rho cross + K R``; rho = 0 gives the ordinary Joseph form.
 """
 
 from __future__ import annotations
@@ -14,13 +23,16 @@ from glassmap.types import wrap_angle
 
 
 class PoseEKF:
-    """State ``pose`` (3,) (m, m, rad) and ``cov`` (3, 3) (m^2, rad^2), map frame."""
+    """State ``pose`` (3,) (m, m, rad) and ``cov`` (3, 3) (m^2, rad^2), map frame; ``actual_cov`` (3, 3):
+    the covariance of the state's error allowing for correlated matches (see the module docstring)."""
 
     def __init__(self, pose: np.ndarray, cov: np.ndarray) -> None:
         self.pose = np.asarray(pose, dtype=np.float64).copy()
         self.cov = np.asarray(cov, dtype=np.float64).copy()
         if self.pose.shape != (3,) or self.cov.shape != (3, 3):
             raise ValueError("PoseEKF needs a (3,) pose and a (3, 3) covariance")
+        self.actual_cov = self.cov.copy()
+        self.cross = np.zeros((3, 3))  # Cov(state error, error of the last fused measurement)
 
     def predict(self, delta: np.ndarray, q: np.ndarray) -> None:
         """Apply the relative motion ``delta`` (base frame at the previous pose) with covariance ``q``."""
@@ -28,6 +40,9 @@ class PoseEKF:
         self.pose = compose(self.pose, delta)
         self.cov = ja @ self.cov @ ja.T + jb @ q @ jb.T
         self.cov = 0.5 * (self.cov + self.cov.T)
+        self.actual_cov = ja @ self.actual_cov @ ja.T + jb @ q @ jb.T
+        self.actual_cov = 0.5 * (self.actual_cov + self.actual_cov.T)
+        self.cross = ja @ self.cross
 
     def innovation(self, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """(innovation y, innovation covariance S, squared Mahalanobis distance y^T S^-1 y)."""
@@ -36,9 +51,10 @@ class PoseEKF:
         s = self.cov + r
         return y, s, float(y @ np.linalg.solve(s, y))
 
-    def correct(self, z: np.ndarray, r: np.ndarray) -> float:
-        """Fuse a direct pose measurement ``z`` (3,) with covariance ``r``; returns the squared Mahalanobis
-        distance of the innovation."""
+    def correct(self, z: np.ndarray, r: np.ndarray, rho: float = 0.0) -> float:
+        """Fuse a direct pose measurement ``z`` (3,) with covariance ``r`` whose error has correlation ``rho``
+        (0..1) with that of the previous measurement; returns the squared Mahalanobis distance of the
+        innovation."""
         y, s, d2 = self.innovation(z, r)
         k = np.linalg.solve(s.T, self.cov.T).T  # P S^-1 (S symmetric)
         self.pose = self.pose + k @ y
@@ -46,4 +62,8 @@ class PoseEKF:
         ikh = np.eye(3) - k
         self.cov = ikh @ self.cov @ ikh.T + k @ r @ k.T
         self.cov = 0.5 * (self.cov + self.cov.T)
+        c = rho * self.cross
+        a = ikh @ self.actual_cov @ ikh.T + k @ r @ k.T + ikh @ c @ k.T + k @ c.T @ ikh.T
+        self.actual_cov = 0.5 * (a + a.T)
+        self.cross = ikh @ c + k @ r
         return d2

@@ -8,6 +8,7 @@ import pytest
 
 from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.pose import EstimatorConfig, PoseEstimator
+from glassmap.pose.estimator import MapRegion
 from glassmap.pose.motion import compose
 from glassmap.types import LaserGeometry, Odometry, PoseEstimate, Scan
 from tests.pose.synth import make_scan, room_with_corner
@@ -127,8 +128,9 @@ def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
     (kept as a reference)."""
     segs = np.array([[-3.013, -2.027, 3.011, -2.027], [3.011, -2.027, 3.011, 2.019],
                      [3.011, 2.019, -3.013, 2.019], [-3.013, 2.019, -3.013, -2.027]])
+    # (a start known to 1 mm / 1 mrad: with the default 0.1 mm the prior holds the robot and hides the drag)
     est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1,
-                                        keyframe_distance=0.0, keyframe_angle=0.0))
+                                        keyframe_distance=0.0, keyframe_angle=0.0, initial_sigma=(1e-3,) * 3))
     rng = np.random.default_rng(0)
     for k in range(15):
         e = est.update(make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng))
@@ -224,14 +226,47 @@ def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
     pose = np.array([4.0, 0.0, 0.0])
     cells = g.world_to_cell(pts + pose[:2])
     sp2, sth2 = 1e-4, 1e-4
-    for name, val in (("pose_var_xy", sp2 + 25 * sth2), ("pose_var_yaw", sth2), ("pose_var_src_x", 0.0),
-                      ("pose_var_src_y", 0.0), ("pose_var_src_xy", sp2)):
+    for name, val in (("pose_var_xy", sp2 + 25 * sth2), ("pose_var_yaw", sth2), ("pose_var_pivot_x", 0.0),
+                      ("pose_var_pivot_y", 0.0), ("pose_var_shift", sp2)):
         g[name][cells[:, 1], cells[:, 0]] = val
-    cov = est._matched_map_covariance(pts, pose)
+    cov, region = est._matched_map_covariance(pts, pose)
     assert cov[0, 0] == pytest.approx(sp2, rel=1e-3)
     assert cov[1, 1] == pytest.approx(sp2 + 16 * sth2, rel=1e-3)  # lever arm 4 m
     assert cov[1, 2] == pytest.approx(4 * sth2, rel=1e-3) and cov[2, 2] == pytest.approx(sth2, rel=1e-3)
     assert cov[0, 1] == pytest.approx(0.0, abs=1e-9)
+    assert region.yaw_var == pytest.approx(sth2) and region.shift_var == pytest.approx(sp2)
+    assert region.pivot == pytest.approx([0.0, 0.0], abs=1e-6)
+
+
+def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
+    """The robot at (4, 0) matched a region whose error is a rotation of (0.01 rad)^2 about (0, 0) and
+    places new cells with a filter covariance of (1 mm)^2 and (1 mrad)^2. The new cells keep the region's
+    rotation about (almost) its pivot, so a robot at (12, 0) matching only them inherits a sideways error
+    of 12 m * 0.01 rad (linear in the distance: the map's direction error persists), not the sum of the two
+    legs' squares (4^2 + 8^2) that a pivot reset to the placing position would give."""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    g = est.occupancy.grid
+    g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
+    vr, pth = 1e-4, 1e-6
+    est.map_region = MapRegion(shift_var=0.0, yaw_var=vr, pivot=np.zeros(2))
+    est.ekf.pose = np.array([4.0, 0.0, 0.0])
+    est.ekf.cov = est.ekf.actual_cov = np.diag([1e-6, 1e-6, pth])
+    angles = np.array([0.5, 0.7, -0.5, -0.7])
+    ranges = np.full(4, 3.0)
+    est._store_map_variance(angles, ranges, 30.0)
+    pivot_x = pth * 4.0 / (vr + pth)  # the variance-weighted pivot: 4 cm from the origin
+    assert g["pose_var_yaw"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(vr + pth)
+    assert g["pose_var_pivot_x"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(pivot_x, abs=1e-6)
+    pose2 = np.array([12.0, 0.0, 0.0])  # the same cells seen from 8 m further on
+    world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    cov, region = est._matched_map_covariance(world - pose2[:2], pose2)
+    assert cov[1, 1] == pytest.approx((vr + pth) * (12.0 - pivot_x) ** 2, rel=0.01)
+    assert cov[1, 1] > 1.4 * vr * (4.0 ** 2 + 8.0 ** 2)
+    # along the corridor only the shift: the filter's (1 mm)^2, plus the spread of the two pivots (the
+    # filter's yaw error turns about (4, 0), not about the stored pivot)
+    shift = 1e-6 + 0.5 * pth * (4.0 - pivot_x) ** 2 + 0.5 * vr * pivot_x ** 2
+    assert cov[0, 0] == pytest.approx(shift, rel=0.01)
+    assert region.pivot == pytest.approx([pivot_x, 0.0], abs=1e-6)
 
 
 def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
