@@ -51,8 +51,8 @@ filter than without).
 - Relative to the map built so far: the EKF's covariance, except that the filter's gain treats every
   match as independent while consecutive matches against the same cells share part of their error. The
   reported relative part (``PoseEKF.actual_cov``) is a Schmidt-style "consider" covariance with the
-  correlation of two consecutive matches taken as the share of the previous match's cells the new one
-  uses (``EstimatorConfig.correlated_matches``).
+  correlation of two consecutive matches taken as the share of the previous match's wall blocks (the 3 x 3
+  cells the field averages into one wall point) the new one uses (``EstimatorConfig.correlated_matches``).
 - The map part: each end-point cell keeps the error model of its best placement (the one that placed the
   cell itself most precisely): a shift (variance per axis) and a rotation about a pivot (layers
   ``pose_var_shift``, ``pose_var_yaw``, ``pose_var_pivot_x/_y``). A robot at X matched against it inherits

@@ -86,7 +86,7 @@ class EstimatorConfig:
         map built so far (see :class:`PoseEstimator`): cells remember the error model of the pose that
         placed them, and a match inherits that of the cells it matched.
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
-        share (``PoseEKF.actual_cov``, correlation = share of the previous match's cells this match uses);
+        share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
         off, the filter's own covariance (which averages every match as independent) is reported.
     """
 
@@ -190,7 +190,7 @@ class PoseEstimator:
         self._pending_field: Future | None = None  # a field rebuild running in the worker thread
         self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
         self.map_region: MapRegion | None = None  # its error model (None before the first match)
-        self._matched_keys: np.ndarray | None = None  # cells (map-frame keys) under the last match's points
+        self._matched_keys: np.ndarray | None = None  # wall blocks (map-frame keys) under the last match
         self._extrapolated = (0.0, 0.0)  # (s past the newest odometry, v m/s) of the last prediction
         if config.subcell_walls:
             for name in HIT_LAYERS:
@@ -369,12 +369,15 @@ class PoseEstimator:
         return state
 
     def _match_overlap(self, pts: np.ndarray, pose: np.ndarray) -> float:
-        """Share (0..1) of the grid cells under this match's end points (base-frame pts at pose) that the
+        """Share (0..1) of the wall blocks under this match's end points (base-frame pts at pose) that the
         previous match's end points fell in too: the correlation of the two matches' errors (they share
-        the error of the map where they overlap). Cells are keyed by map-frame position, so a grown grid
-        does not change them."""
+        the error of the map where they overlap). A block is the (2 pool + 1)^2 cells whose end points the
+        likelihood field averages into one wall point (``FieldParams.pool``), so two matches using the same
+        wall estimate count as overlapping; blocks are keyed by map-frame position, so a grown grid does not
+        change them."""
         c, s = np.cos(pose[2]), np.sin(pose[2])
-        keys = np.floor((pose[:2] + pts @ np.array([[c, s], [-s, c]])) / self.occupancy.grid.resolution)
+        block = (2 * self.field.params.pool + 1) * self.occupancy.grid.resolution
+        keys = np.floor((pose[:2] + pts @ np.array([[c, s], [-s, c]])) / block)
         keys = np.unique(keys.astype(np.int64) @ np.array([1, 1 << 32], dtype=np.int64))
         prev, self._matched_keys = self._matched_keys, keys
         if prev is None or keys.size == 0:
