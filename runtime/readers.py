@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcap.records import Metadata
@@ -40,17 +39,6 @@ BASE_FRAMES = ("base_link", "base_footprint", "base")
 
 class ReplayInputError(ValueError):
     """A file cannot be replayed: missing, unknown kind, or without laser scans."""
-
-
-@dataclass
-class SourceInfo:
-    """What a replay source contains."""
-
-    path: str
-    kind: str  # 'glassmap-mcap' | 'mcap' | 'rosbag2' | 'rosbag1'
-    scan_topic: str = ""
-    odom_topic: str = ""  # '' = none; '/tf' = from transforms
-    metadata: dict[str, str] = field(default_factory=dict)
 
 
 def read_metadata(path: str | Path) -> dict[str, str]:

@@ -123,10 +123,6 @@ class OdometryTracker:
         self.rotation = 0.0  # rad turned (absolute)
         self.max_step_units = 0  # largest position step seen (units), for diagnostics
 
-    @property
-    def anchored(self) -> bool:
-        return self._raw is not None
-
     def reanchor(self) -> None:
         """Forget the last raw values: the next SIP anchors again (after SETO resets the controller)."""
         self._raw = None

@@ -21,7 +21,6 @@ from drivers.pioneer.errors import ChecksumError, FramingError, PacketError
 
 HEADER = b"\xfa\xfb"
 MIN_N = 3
-MAX_N = 255
 MAX_SEND_N = 200
 
 ARG_INT = 0x3B
@@ -155,13 +154,6 @@ def parse_int_arg(payload: bytes) -> int | None:
     return -mag if payload[0] == ARG_NEGINT else mag
 
 
-def parse_str_arg(payload: bytes) -> bytes | None:
-    """The string argument of a received command payload, or None."""
-    if len(payload) < 2 or payload[0] != ARG_STR:
-        return None
-    return bytes(payload[2: 2 + payload[1]])
-
-
 @dataclass(frozen=True)
 class Packet:
     """One validated packet. ``stamp``: caller's time of the chunk that held the packet's first byte."""
@@ -169,9 +161,6 @@ class Packet:
     pid: int
     payload: bytes
     stamp: float | None = None
-
-    def to_bytes(self) -> bytes:
-        return build_packet(self.pid, self.payload, max_n=MAX_N)
 
 
 @dataclass

@@ -497,12 +497,6 @@ class PoseEstimator:
             cov = cov + rot @ self.config.motion.extrapolation_covariance(v, dt) @ rot.T
         return cov
 
-    @property
-    def map_var(self) -> np.ndarray:
-        """(xy, yaw) variances (m^2, rad^2) of the map region matched last: the larger eigenvalue of the
-        position block and the yaw entry of ``map_cov``."""
-        return np.array([float(np.linalg.eigvalsh(self.map_cov[:2, :2]).max()), float(self.map_cov[2, 2])])
-
     def estimate(self, stamp: float | None = None) -> PoseEstimate:
         """The current estimate (base, map frame) with the reported covariance."""
         x, y, yaw = self.ekf.pose

@@ -126,10 +126,6 @@ class OdometryBuffer:
     def __len__(self) -> int:
         return len(self._t)
 
-    @property
-    def latest_stamp(self) -> float | None:
-        return self._t[-1] if self._t else None
-
     def extrapolation(self, t: float) -> tuple[float, float]:
         """(seconds past the newest message that :meth:`pose_at` extrapolates for time ``t``, clipped to
         ``max_extrapolation``; the newest forward velocity, m/s). (0, 0) when t is inside the buffer."""

@@ -81,12 +81,6 @@ class Blueprint:
         rc = np.floor((xy[..., ::-1] - self.origin[::-1]) / self.resolution)
         return rc.astype(np.int64)
 
-    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
-        """Map-frame x (W,) and y (H,) of the cell centres (m)."""
-        h, w = self.shape
-        return (self.origin[0] + (np.arange(w) + 0.5) * self.resolution,
-                self.origin[1] + (np.arange(h) + 0.5) * self.resolution)
-
     def to_rgb(self) -> np.ndarray:
         """(H, W, 3) uint8 image with north up (row 0 of the image = the largest y)."""
         return COLORS[self.labels[::-1]]

@@ -14,7 +14,7 @@ window and with a probability (a weak surface return); otherwise the beam passes
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from enum import IntEnum
 
 
@@ -72,9 +72,6 @@ class Material:
     @property
     def is_glass(self) -> bool:
         return self.kind == MaterialKind.GLASS
-
-    def with_updates(self, **changes: object) -> "Material":
-        return replace(self, **changes)  # type: ignore[arg-type]
 
 
 # Defaults per kind. A world file picks a kind and may override any field (see docs/simulator.md).
