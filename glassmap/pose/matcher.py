@@ -6,13 +6,15 @@ score(pose) = sum_j w_j * L(R(yaw) p_j + t). Two resolutions: the whole search w
 coarse translation step on the block-max field (an upper bound of the fine score), then the fine lattice is
 scored around the best coarse candidates. All poses of one stage are scored in one vectorized gather.
 
-Covariance: the scores of the fine lattice around the peak are turned into a distribution
-pi(pose) ~ exp(beta * (score - max)), beta = ``independent_points / sum(w)`` (end points are strongly
-correlated, so the scan carries the information of fewer independent points than it has; the value is
-calibrated against a map built from the true poses, see ``MatcherConfig.subcell_floor``). The measurement
-is the mean of pi, its covariance the second moment of pi plus a floor for the sub-lattice interpolation.
-Where pi is curved, the measurement is the vertex of a parabola through the peak score and its neighbours (per axis)
-rather than the mean (which snaps to the lattice when pi is narrow); the mean is kept on flat axes.
+Covariance: the scores are turned into a distribution pi(pose) ~ exp(beta * (score - max)),
+beta = ``min(1, independent_points / sum(w))`` (end points are correlated, so the scan carries the information of
+fewer independent points than it has; see ``MatcherConfig.independent_points``). Its covariance is the law
+of total variance over the fine lattice's cells: the second moment of pi on the lattice (the spread between
+cells, e.g. along a corridor) plus the covariance of pi inside the peak's cell, from the curvature of the
+scores there (the spread within a cell: most of the covariance when the match is sharper than the 5 cm
+lattice step, which the lattice alone would report as zero; see ``_within_cell_covariance``).
+The measurement is the mean of pi on flat axes; where pi is curved, it is the vertex of a parabola through
+the peak score and its neighbours (per axis), as the mean snaps to the lattice when pi is narrow.
 """
 
 from __future__ import annotations
@@ -36,16 +38,13 @@ class MatcherConfig:
     [xy_window_min, xy_window_max] and [yaw_window_min, yaw_window_max].
     fine_half_cells / fine_half_yaw: half-size (lattice steps) of the fine window used for the peak and the
     covariance; yaw_step_min/max: bounds of the fine yaw step; max_refine: coarse candidates refined.
-    independent_points: tempering of the score distribution (see module docstring).
+    independent_points: tempering of the score distribution (see module docstring; beta is at most 1: a scan
+        never counts as more independent points than it has). 120 (of at most 200 end points), chosen on
+        ``glassmap pose eval`` office, room and glass-corridor seeds 0-2: mean NEES 1.6-5.1; 90 gave room
+        seed 2 1.48, 150 gave office seed 1 5.48 with 77 % of the scans inside the 95 % bound.
     bilinear: interpolate the field bilinearly in the fine stage (smooth scores, sub-cell accuracy; four
         lookups per point): the vector to the nearest wall point when the field has vectors (exact near a
         straight wall), else the likelihood itself.
-    subcell_floor: standard deviation (in lattice steps) added to the covariance for the residual error of
-        the sub-lattice peak interpolation. Calibrated together with independent_points by matching against
-        a map built from the true poses (every key scan of a ``glassmap pose eval`` run integrated at its
-        true pose, seed 0): the match errors were 2-3.3 mm and 0.03-0.04 deg; 0.06 steps (3 mm) with 50
-        independent points gives a mean NEES of the match of 3.0 (office), 1.3 (room), 4.0 (glass
-        corridor). (0.15 steps gave 0.6: twice too wide, which the map-uncertainty bookkeeping compounded.)
     switch_margin: a window away from the prior replaces the prior-centred one only if its peak score is
         better by this much (log-likelihood units: clearly better, not noise along a flat ridge).
     min_quality: mean end-point likelihood at the peak (0..1) below which the match is rejected.
@@ -67,9 +66,8 @@ class MatcherConfig:
     yaw_step_max: float = np.radians(0.25)
     max_refine: int = 1
     switch_margin: float = 2.0
-    subcell_floor: float = 0.06
     bilinear: bool = True
-    independent_points: float = 50.0
+    independent_points: float = 120.0
     min_quality: float = 0.25
 
 
@@ -143,15 +141,17 @@ class CorrelativeMatcher:
     def _scores(self, field_arr: np.ndarray, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray,
                 xy0: np.ndarray, yaws: np.ndarray, tx: np.ndarray, ty: np.ndarray, margin: int,
                 bilinear: bool = False) -> np.ndarray:
-        """Scores (K, T) for yaws (K,) and integer cell translations (tx, ty) (T,) around xy0.
+        """Scores (K, T) for yaws (K,) and integer cell translations (tx, ty) (T,) around xy0 (m, map frame;
+        (2,), or (K, 2) for one per yaw: poses off the lattice).
 
         bilinear: interpolate the field between cell centres (smooth in sub-cell offsets; 4 lookups per
         point) instead of taking the cell the point falls in."""
         res = fld.resolution
         h, wd = fld.shape
         c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
-        fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[0] - fld.origin[0])) / res
-        fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[1] - fld.origin[1])) / res
+        xy0 = np.asarray(xy0, dtype=np.float64).reshape(-1, 2)  # (1, 2) or one origin per yaw (K, 2)
+        fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[:, :1] - fld.origin[0])) / res
+        fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[:, 1:] - fld.origin[1])) / res
         off = ty.astype(np.int64) * wd + tx.astype(np.int64)  # (T,)
         wf = w.astype(np.float32)
         if not bilinear:
@@ -233,7 +233,7 @@ class CorrelativeMatcher:
         ftx, fty = np.meshgrid(dx, dx, indexing="xy")
         ftx, fty = ftx.ravel(), fty.ravel()
         dk = np.arange(-hy, hy + 1)
-        beta = cfg.independent_points / float(w.sum())
+        beta = min(1.0, cfg.independent_points / float(w.sum()))
         starts = [(0, 0, prior_pose[2])]
         for flat in order[: cfg.max_refine]:
             k, t = np.unravel_index(flat, sc.shape)
@@ -301,7 +301,58 @@ class CorrelativeMatcher:
         peak = np.array([px[tt] + sub[0] * res, py[tt] + sub[1] * res, yaws[kk] + sub[2] * step])
         mean = np.array([mx, my, cyaw + mk])
         pose = np.where(curved, peak, mean)
-        q = cfg.subcell_floor
-        cov += np.diag([(q * res) ** 2, (q * res) ** 2, (q * step) ** 2])
+        within, n_within = self._within_cell_covariance(fld, pts, w, np.array([px[tt], py[tt], yaws[kk]]), step,
+                                                        beta, margin)
+        cov += within
+        n_poses += n_within
         return MatchResult(pose=pose, covariance=cov, peak_pose=peak, quality=quality,
                            n_points=int(pts.shape[0]), n_poses=int(n_poses), edge=bool(edge))
+
+    def _within_cell_covariance(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, center: np.ndarray,
+                                step: float, beta: float, margin: int) -> tuple[np.ndarray, int]:
+        """(Covariance (3x3), poses scored) of pi inside the cell of the best lattice pose ``center`` (a cell
+        is one lattice step along x, y and yaw). The lattice moments see each cell's mass at its centre only;
+        by the law of total variance the rest is the spread inside the cells, taken as that of the peak's.
+
+        It is the Gaussian of the peak's curvature, (beta H)^-1 with H the Hessian of -score by central
+        differences, taken twice: with steps of a fifth of the cell, then of the standard deviations this
+        gave (the score is quadratic near the peak, not across the whole cell, where end points leave the
+        Gaussian part of the field). On an axis where that is wider than the cell, the lattice moments
+        already hold the spread, and the axis is scaled down to that of a uniform distribution over the
+        cell (step^2 / 12); where the score does not curve down (flat, or not a peak at this scale) the
+        whole cell is uniform. (A moment of pi sampled at 5^3 points in the cell was off by up to 50 %
+        against 31^3 points: a spread of a few mm against 1 cm samples.)"""
+        size = np.array([fld.resolution, fld.resolution, step])
+        uniform = size ** 2 / 12.0
+        h = size / 5
+        for n_scored in (19, 38):
+            hess = self._score_hessian(fld, pts, w, center, h, margin)
+            if np.linalg.eigvalsh(hess)[-1] >= 0:
+                return np.diag(uniform), n_scored
+            cov = np.linalg.inv(-beta * hess)
+            h = np.clip(np.sqrt(np.diag(cov)), size / 100, size / 5)
+        scale = np.minimum(1.0, np.sqrt(uniform / np.diag(cov)))
+        return cov * np.outer(scale, scale), n_scored
+
+    def _pose_scores(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, poses: np.ndarray,
+                     margin: int) -> np.ndarray:
+        """Scores (P,) of arbitrary poses (P, 3) (map frame) on the fine field."""
+        zero = np.zeros(1, dtype=np.int64)
+        return self._scores(fld.fine, fld, pts, w, poses[:, :2], poses[:, 2], zero, zero, margin,
+                            self.config.bilinear)[:, 0].astype(np.float64)
+
+    def _score_hessian(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, pose: np.ndarray,
+                       h: np.ndarray, margin: int) -> np.ndarray:
+        """Hessian (3x3) of the score at ``pose`` by central differences with steps ``h`` (3,) (19 poses)."""
+        eye = np.eye(3) * h
+        i, j = np.triu_indices(3, 1)
+        offs = [np.zeros(3)] + [sg * eye[k] for k in range(3) for sg in (1, -1)]
+        offs += [a * eye[k] + b * eye[m] for k, m in zip(i, j) for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
+        sc = self._pose_scores(fld, pts, w, pose + np.array(offs), margin)
+        hess = np.empty((3, 3))
+        for k in range(3):
+            hess[k, k] = (sc[1 + 2 * k] - 2 * sc[0] + sc[2 + 2 * k]) / h[k] ** 2
+        for q, (k, m) in enumerate(zip(i, j)):
+            pp, pm, mp, mm = sc[7 + 4 * q: 11 + 4 * q]
+            hess[k, m] = hess[m, k] = (pp - pm - mp + mm) / (4 * h[k] * h[m])
+        return hess

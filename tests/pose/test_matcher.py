@@ -6,21 +6,26 @@ import pytest
 from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, select_points
-from tests.pose.synth import corridor, make_scan, room_with_corner
+from tests.pose.synth import box, corridor, make_scan, room_with_corner
 
 PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
 
 
-def _map_of(segments, pose=np.zeros(3), n=3):
-    """Occupancy from n noisy scans at true poses around ``pose`` (a few cm and a degree apart)."""
+def _map_from(segments, poses, center=np.zeros(2)):
+    """Likelihood field of the occupancy from noisy scans taken at the true ``poses``."""
     occ = OccupancyGrid(MapGrid())
-    for i in range(n):
-        p = pose + np.array([0.03 * i, -0.02 * i, np.radians(0.7) * i])
+    for i, p in enumerate(poses):
         s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
         occ.integrate(p, s.angles, s.ranges)
     fld = LikelihoodField()
-    fld.rebuild(occ, pose[:2])
+    fld.rebuild(occ, center)
     return fld
+
+
+def _map_of(segments, pose=np.zeros(3), n=3):
+    """A map from n scans around ``pose`` (a few cm and a degree apart)."""
+    return _map_from(segments, [pose + np.array([0.03 * i, -0.02 * i, np.radians(0.7) * i]) for i in range(n)],
+                     pose[:2])
 
 
 def _match(fld, segments, true_pose, prior_pose=np.zeros(3), config=MatcherConfig(), seed=7):
@@ -65,10 +70,33 @@ def test_corner_covariance_is_small_and_round():
     vals = np.linalg.eigvalsh(r.covariance[:2, :2])
     assert np.sqrt(vals[1]) < 0.04
     assert vals[1] / vals[0] < 3.0
-    corr = _match(_map_of(corridor()), corridor(), np.array([0.06, -0.04, np.radians(0.5)]))
-    # (the corridor's along-track variance here comes only from where the short test map's walls end: the
-    # likelihood field measures distances along a wall's normal, so a wall gives no along-wall constraint)
+    # against a corridor mapped while driving along it: a map of a few scans from one spot has dotted far
+    # walls, whose ripples make a narrow (and wrong) along-track peak
+    driven = _map_from(corridor(60.0), [np.array([x, 0.0, 0.0]) for x in np.arange(-5.0, 5.01, 0.5)])
+    corr = _match(driven, corridor(60.0), np.array([0.06, -0.04, np.radians(0.5)]))
     assert vals[1] < 0.33 * np.linalg.eigvalsh(corr.covariance[:2, :2])[1]
+
+
+def test_sharp_match_covariance_is_the_curvature_of_the_scores():
+    """In a box whose walls lie on cell centres (noise-free scans), the score near the peak is
+    -sum_j d_j^2 / (2 sigma_hit^2), so the tempered distribution has standard deviation
+    sigma_hit / sqrt(beta N) along x with N the end points on the walls facing x (likewise y): a few mm,
+    far below the 5 cm lattice step, and not a fixed number."""
+    segs = box(-3.025, -2.025, 2.975, 1.975)
+    fld = _map_from(segs, [np.array([0.1 * i, -0.05 * i, 0.0]) for i in range(5)])
+    true = np.array([0.012, -0.007, 0.002])
+    s = make_scan(segs, true)
+    m = CorrelativeMatcher()
+    pts, w, _ = select_points(s.angles, s.ranges, np.zeros(3), m.config)
+    r = m.match(fld, pts, w, np.zeros(3), np.diag([0.05 ** 2, 0.05 ** 2, 0.02 ** 2]))
+    c, sn = np.cos(true[2]), np.sin(true[2])
+    wp = true[:2] + pts @ np.array([[c, sn], [-sn, c]])
+    n_x = np.sum(np.minimum(abs(wp[:, 0] + 3.025), abs(wp[:, 0] - 2.975)) < 0.01)
+    n_y = np.sum(np.minimum(abs(wp[:, 1] + 2.025), abs(wp[:, 1] - 1.975)) < 0.01)
+    beta = min(1.0, m.config.independent_points / w.sum())
+    expected = FieldParams().sigma_hit / np.sqrt(beta * np.array([n_x, n_y]))
+    assert np.sqrt(np.diag(r.covariance)[:2]) == pytest.approx(expected, rel=0.15)
+    assert abs(r.pose - true).max() < 0.003
 
 
 def test_no_match_on_empty_map_or_too_few_points():
