@@ -162,8 +162,8 @@ class PoseEstimator:
     at ``scan.stamp`` and integrates the scan into ``occupancy`` (shared with the glass mapper).
 
     Covariance. The EKF tracks the pose relative to the map built so far (odometry noise and match
-    covariances; ``ekf.actual_cov`` also counts the error consecutive matches share, see
-    :mod:`glassmap.pose.filter`); that alone would be overconfident, because the map itself is only as
+    covariances; with ``correlated_matches``, ``ekf.actual_cov`` also counts the error consecutive matches
+    share, see :mod:`glassmap.pose.filter`); that alone would be overconfident, because the map itself is only as
     good as the poses that built it. So every end-point cell stores the error model of its best placement
     (the one that placed the cell itself most precisely): a shift (``pose_var_shift``, m^2 per axis) and a
     rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a match reads the model
