@@ -3,8 +3,9 @@
 Model: host(s) = a + b * s for sensor time s (seconds, unwrapped). A scan stamped s (its first step)
 arrives at the host at host(s) + L + jitter, where L (host seconds) is the fixed part of the latency
 (the sweep itself plus transmission) and jitter >= 0. The *lower envelope* of (s, arrival) pairs is
-therefore the line a + L + b * s: it is fitted by least squares to the minimum arrival of consecutive
-blocks of scans, with blocks far off the line rejected (so late scans never pull the clock).
+therefore the line a + L + b * s: it is the lower envelope of the minimum arrivals of consecutive blocks
+of scans (a line below all of them, as close as it can be: late scans never pull the clock), fitted once
+there are four blocks (until then only the offset moves).
 L comes from the TM1 round trips (the minimum-round-trip sample gives host(s) at one instant); without
 them L defaults to one scan time. A sensor clock jump (a stamp far from the line) is confirmed by the
 next few scans before the model is re-anchored; a single odd stamp is only counted as an outlier.
@@ -82,7 +83,7 @@ class ClockMapper:
         self._blocks: deque[tuple[float, float]] = deque(maxlen=window)  # (sensor s, min arrival)
         self._cur: list[tuple[float, float]] = []
         self._candidates: list[tuple[float, float]] = []
-        self._have_slope = False  # a fit over >= 3 blocks has happened (kept across clock jumps)
+        self._have_slope = False  # a fit over >= 4 blocks has happened (kept across clock jumps)
 
     # -- TM1 ------------------------------------------------------------------------------------------
     def add_round_trips(self, samples: list[RoundTrip]) -> RoundTrip | None:
@@ -96,7 +97,7 @@ class ClockMapper:
     # -- streaming ------------------------------------------------------------------------------------
     def observe(self, sensor: float, arrival: float) -> float:
         """Record a scan stamped ``sensor`` (s) that arrived at ``arrival`` (host s); return its host stamp."""
-        if self.intercept is not None:
+        if self._have_slope:  # (before, the line's slope is a guess: being off it says nothing yet)
             resid = arrival - (self.intercept + self.slope * sensor)
             if resid < -self.jump_tolerance or resid > 4 * self.jump_tolerance:
                 return self._candidate(sensor, arrival)
@@ -113,7 +114,7 @@ class ClockMapper:
     def host_time(self, sensor: float, arrival: float | None = None) -> float:
         """Host time of sensor time ``sensor`` under the current model (arrival is a fallback).
 
-        Until three blocks have given a slope, a scan is stamped arrival - latency: a few ms of jitter, but no
+        Until four blocks have given a slope, a scan is stamped arrival - latency: a few ms of jitter, but no
         error from an unknown clock rate (an emulator running faster than real time has slope != 1)."""
         if self.intercept is not None and self.latency is not None and self._have_slope:
             return self.intercept + self.slope * sensor - self.latency
@@ -131,22 +132,15 @@ class ClockMapper:
 
     def _fit(self) -> None:
         pts = np.array(self._blocks)
-        if pts.shape[0] == 1:
-            self.intercept = float(pts[0, 1] - self.slope * pts[0, 0])
+        line = _lower_envelope(pts[:, 0], pts[:, 1]) if pts.shape[0] >= 4 else None
+        if line is None:
+            # no slope from fewer than four blocks: a late block (a host stall) would tilt the line (with three,
+            # a late last block and a steeper line fit equally well), and the scans that follow would look like
+            # a sensor clock jump; until then the envelope's lowest block sets the offset
+            self.intercept = float(np.min(pts[:, 1] - self.slope * pts[:, 0]))
         else:
-            s, a = pts[:, 0], pts[:, 1]
-            keep = np.ones(s.size, bool)
-            for _ in range(2):
-                A = np.stack([np.ones(keep.sum()), s[keep]], axis=1)
-                (c, b), *_ = np.linalg.lstsq(A, a[keep], rcond=None)
-                r = a - (c + b * s)
-                mad = np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-4
-                new = np.abs(r) < 4 * mad + 1e-3
-                if new.sum() < 3 or (new == keep).all() or s.size < 3:
-                    break
-                keep = new
-            self.intercept, self.slope = float(c), float(b)
-            self._have_slope = self._have_slope or s.size >= 3
+            self.intercept, self.slope = line
+            self._have_slope = True
         if self.latency is None or (self.anchor is not None and len(self._blocks) <= 6):
             # with a TM1 anchor, L is refined over the first blocks (while the slope settles), then kept
             if self.anchor is not None and self.intercept is not None:
@@ -175,3 +169,25 @@ class ClockMapper:
             return self.host_time(sensor, arrival)
         lat = self.latency if self.latency is not None else self.default_latency
         return arrival - lat
+
+
+def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
+    """(c, b) of the line a = c + b s below every point (s_i, a_i) with the least total distance to them
+    (the linear program of Moon, Skelly and Towsley 1999 for clock skew from one-way delays: jitter only
+    makes arrivals late, so late points never pull the line; its optimum passes through two points).
+    None when no line with a positive slope lies below them all."""
+    s0, a0 = s[0], a[0]
+    s, a = s - s0, a - a0  # host times may be epoch seconds: keep the rounding far below a microsecond
+    i, j = np.triu_indices(s.size, 1)
+    ds = s[j] - s[i]
+    ok = ds > 0
+    i, j, ds = i[ok], j[ok], ds[ok]
+    b = (a[j] - a[i]) / ds
+    c = a[i] - b * s[i]
+    resid = a[None, :] - (c[:, None] + b[:, None] * s[None, :])  # (pairs, points)
+    feasible = (resid.min(axis=1) >= -1e-9) & (b > 0)  # host time runs forward with sensor time
+    cost = np.where(feasible, resid.sum(axis=1), np.inf)
+    k = int(np.argmin(cost))
+    if not np.isfinite(cost[k]):
+        return None
+    return float(a0 + c[k] - b[k] * s0), float(b[k])

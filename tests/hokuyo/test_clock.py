@@ -56,6 +56,19 @@ def test_late_scans_do_not_move_the_clock():
     assert m.jumps == 0
 
 
+@pytest.mark.parametrize("stalled_block", [1, 2, 3])
+def test_a_host_stall_while_the_rate_is_being_learnt_is_not_a_clock_jump(stalled_block):
+    """An emulator at 4x real time (0.25 host s per sensor s, far from the initial guess of 1) and a
+    0.3 s host stall over a whole block of 8 scans while the rate is fitted: no jump, the rate is learnt."""
+    m = ClockMapper()
+    late = set(range(8 * stalled_block, 8 * stalled_block + 8))
+    for k in range(200):
+        s = 5.0 + 0.025 * k
+        m.observe(s, 1000.0 + 0.25 * s + 0.002 + (0.3 if k in late else 0.0))
+    assert m.jumps == 0
+    assert m.slope == pytest.approx(0.25, abs=1e-6)
+
+
 def test_a_confirmed_clock_jump_reanchors_without_a_host_time_jump():
     m = ClockMapper()
     m.add_round_trips([RoundTrip(1004.9995, 1005.0005, 5.0)])
