@@ -41,7 +41,7 @@ filter than without).
    curvature there ((beta H)^-1, H by central differences at the scale of that spread; each axis at most
    a uniform spread over the cell). Key-scan matches are sharper than the 5 cm lattice, so the lattice
    alone would report ~0; in a box with walls on cell centres the result is sigma_hit / sqrt(beta N) with
-   N the points on the walls facing each axis, within 5 % (``tests/pose/test_matcher.py``). The
+   N the points on the walls facing each axis, within about 5 % (``tests/pose/test_matcher.py``). The
    measurement is the vertex of a parabola through the peak on curved axes, the mean of pi on flat ones
    (e.g. along a corridor, where pi is elongated and the EKF keeps the prediction).
    With ``EstimatorConfig.deskew`` (off by default: the simulator does not model the sweep) a key scan is
