@@ -102,7 +102,7 @@ class GlassClassifier:
         pt, js = stem.with_suffix(".pt"), stem.with_suffix(".json")
         for p in (pt, js):
             if not p.is_file():
-                raise ClassifierError(f"classifier file {p} not found; run `glassmap train` to create it")
+                raise ClassifierError(f"classifier file {p} not found; run `glassmap glass train` to create it")
         meta = ClassifierMeta.from_json(js.read_text())
         model = build_mlp(meta.hidden)
         try:

@@ -1,4 +1,4 @@
-"""Subcommands of the glass-map core: ``train``, ``eval``, ``angles``, ``map``, ``bench-glass``."""
+"""``glassmap glass``: the glass-map core: ``train``, ``angles``, ``map``, ``experiment``, ``bench``."""
 
 from __future__ import annotations
 
@@ -9,37 +9,48 @@ import os
 import sys
 import time
 
+from glassmap.cli_args import add_out, add_seed, add_workers, add_world, add_worlds
 
-def register(sub: argparse._SubParsersAction) -> None:
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    g = subparsers.add_parser(
+        "glass", help="glass classifier and glass maps: train, angles, map, experiment, bench",
+        description="The glass path: incidence angles, the p(glass) classifier, registration onto the grid and "
+        "the Bayesian glass map. Train the classifier, compare incidence-angle methods, map a simulated run, "
+        "run the paper's experiment (direct vs robust registration) and time the per-scan path.")
+    sub = g.add_subparsers(dest="glass_command", required=True, metavar="GLASS_COMMAND")
+
     p = sub.add_parser("train", help="train the glass classifier on simulated labelled beams",
                        description="Simulate labelled beams from several worlds and laser parameter sets, train "
                        "the 4-layer MLP (class-balanced, temperature-scaled) and report on a held-out world "
                        "with shifted simulator parameters. Writes <out>.pt and <out>.json (default: the "
                        "weights shipped in the package).")
-    p.add_argument("--out", default=None, help="output stem (default: glassmap/models/glass_mlp)")
-    p.add_argument("--worlds", default="office,glass-corridor,room", help="training worlds (comma separated)")
-    p.add_argument("--heldout", default="lobby", help="held-out world (default lobby)")
-    p.add_argument("--poses", type=int, default=300, help="scans per world and parameter set (default 300)")
-    p.add_argument("--param-sets", type=int, default=3, help="laser parameter sets per world (default 3)")
-    p.add_argument("--epochs", type=int, default=25)
-    p.add_argument("--angle-method", default="split-merge", choices=["split-merge", "hough"])
-    p.add_argument("--seed", type=int, default=0)
+    add_out(p, None, "output stem (default: the shipped weights, glassmap/models/glass_mlp)")
+    add_worlds(p, "office,glass-corridor,room")
+    p.add_argument("--heldout", default="lobby", help="held-out world (default: %(default)s)")
+    p.add_argument("--poses", type=int, default=300, help="scans per world and parameter set (default: %(default)s)")
+    p.add_argument("--param-sets", type=int, default=3, help="laser parameter sets per world (default: %(default)s)")
+    p.add_argument("--epochs", type=int, default=25, help="training epochs (default: %(default)s)")
+    p.add_argument("--angle-method", default="split-merge", choices=["split-merge", "hough"],
+                   help="incidence-angle method (default: %(default)s)")
+    add_seed(p)
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("eval", help="the paper's experiment: direct vs robust registration over many trials",
+    p = sub.add_parser("experiment", help="the paper's experiment: direct vs robust registration over many trials",
                        description="Trials on a simulated world: the estimated pose is the true pose plus a "
                        "time-correlated error (sigma_xy, sigma_theta, tau); maps are built with every method on "
                        "the same data and scored against the blueprint. Writes a CSV and a box plot, prints "
                        "mean / worst / std per method; --sweep also runs sigma_xy = 0, 1, 2, 5, 10 cm.")
-    p.add_argument("--world", default="office")
+    add_world(p)
     p.add_argument("--route", default=None, help="route name (default: the world's default route)")
-    p.add_argument("--trials", type=int, default=50, help="number of trials (default 50)")
+    p.add_argument("--trials", type=int, default=50, help="number of trials (default: %(default)s)")
     p.add_argument("--duration", type=float, default=None, help="drive at most this many seconds per trial")
-    p.add_argument("--scan-rate", type=float, default=5.0, help="scans mapped per second (Hz, default 5)")
-    p.add_argument("--sigma-xy", type=float, default=0.05, help="position error std per axis (m, default 0.05)")
+    p.add_argument("--scan-rate", type=float, default=5.0, help="scans mapped per second (Hz, default: %(default)s)")
+    p.add_argument("--sigma-xy", type=float, default=0.05,
+                   help="position error std per axis (m, default: %(default)s)")
     p.add_argument("--sigma-theta", type=float, default=math.radians(0.25),
-                   help="heading error std (rad, default 0.25 deg)")
-    p.add_argument("--tau", type=float, default=2.0, help="error correlation time (s, default 2)")
+                   help="heading error std (rad, default: 0.25 deg)")
+    p.add_argument("--tau", type=float, default=2.0, help="error correlation time (s, default: %(default)s)")
     p.add_argument("--sigma-mode", default="beam", choices=["beam", "xy"],
                    help="registration sigma per beam sqrt(sxy^2 + (r sth)^2) (default) or sigma_xy only")
     p.add_argument("--methods", default=None, help="comma separated (default: direct, robust3, robust5, "
@@ -48,54 +59,58 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "robust3-beam", "robust5-beam", "robust3-protect-glass", "robust3-no-protect",
                        "robust3-plain"]))
     p.add_argument("--max-free-range", type=float, default=10.0,
-                   help="m a beam clears in the occupancy update (default 10; the grid default is 20)")
+                   help="m a beam clears in the occupancy update (default: %(default)s; the grid default is 20)")
     p.add_argument("--map-poses", choices=["truth", "estimate"], default="truth",
                    help="poses the shared occupancy grid is built from: 'truth' (default; a consistent map, as "
                    "a SLAM back end gives, with only the robot's pose against it uncertain) or 'estimate' "
                    "(the registration's noisy poses, which also smear the walls of the occupancy grid)")
     p.add_argument("--sweep", action="store_true", help="also sweep sigma_xy over --sweep-sigmas")
-    p.add_argument("--sweep-sigmas", default="0,0.01,0.02,0.05,0.10", help="sigma_xy values (m) of the sweep")
-    p.add_argument("--sweep-trials", type=int, default=10, help="trials per sigma in the sweep (default 10)")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    p.add_argument("--seed", type=int, default=1000, help="first trial seed")
-    p.add_argument("--out", default="out/eval", help="output directory (default out/eval)")
-    p.set_defaults(func=cmd_eval)
+    p.add_argument("--sweep-sigmas", default="0,0.01,0.02,0.05,0.10",
+                   help="sigma_xy values (m) of the sweep (default: %(default)s)")
+    p.add_argument("--sweep-trials", type=int, default=10, help="trials per sigma in the sweep (default: %(default)s)")
+    add_workers(p)
+    add_seed(p, 1000, "first trial seed")
+    add_out(p, "out/experiment")
+    p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("angles", help="benchmark the incidence-angle extractors against the simulator's truth",
                        description="Simulate scans at poses along the routes of some worlds and compare the "
                        "Hough and split-and-merge incidence angles with the true angles: coverage, median / "
                        "p90 / p99 error, time per scan (one core).")
-    p.add_argument("--worlds", default="office,glass-corridor,lobby,room")
-    p.add_argument("--scans", type=int, default=60, help="scans per world (default 60)")
-    p.add_argument("--seed", type=int, default=0)
+    add_worlds(p, "office,glass-corridor,lobby,room")
+    p.add_argument("--scans", type=int, default=60, help="scans per world (default: %(default)s)")
+    add_seed(p)
     p.set_defaults(func=cmd_angles)
 
     p = sub.add_parser("map", help="build the glass confidence map of a simulated run and export it",
                        description="Drive a world's route (or load a dataset from `glassmap sim run`), add the "
                        "pose error model, build the maps and write PNG (paper colours), .npy probabilities "
                        "and PGM + YAML.")
-    p.add_argument("--world", default="office")
+    add_world(p)
     p.add_argument("--dataset", default=None, help="a .npz from `glassmap sim run` (uses its true laser poses)")
-    p.add_argument("--method", default="robust3", help="registration method (default robust3)")
-    p.add_argument("--sigma-xy", type=float, default=0.05)
-    p.add_argument("--sigma-theta", type=float, default=math.radians(0.25))
-    p.add_argument("--tau", type=float, default=2.0)
-    p.add_argument("--scan-rate", type=float, default=10.0, help="scans used per second (Hz)")
+    p.add_argument("--method", default="robust3", help="registration method (default: %(default)s)")
+    p.add_argument("--sigma-xy", type=float, default=0.05, help="position error std per axis (m, default: %(default)s)")
+    p.add_argument("--sigma-theta", type=float, default=math.radians(0.25),
+                   help="heading error std (rad, default: 0.25 deg)")
+    p.add_argument("--tau", type=float, default=2.0, help="error correlation time (s, default: %(default)s)")
+    p.add_argument("--scan-rate", type=float, default=10.0, help="scans used per second (Hz, default: %(default)s)")
     p.add_argument("--duration", type=float, default=None, help="drive at most this many seconds")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="out/map")
-    p.add_argument("--stem", default="glass_map")
+    add_seed(p)
+    add_out(p, "out/map")
+    p.add_argument("--stem", default="glass_map", help="file name stem of the exported maps (default: %(default)s)")
     p.add_argument("--map-poses", choices=["truth", "estimate"], default="truth",
-                   help="poses the occupancy grid is built from (see `glassmap eval --help`; default truth)")
+                   help="poses the occupancy grid is built from (see `glassmap glass experiment --help`; "
+                   "default: truth)")
     p.set_defaults(func=cmd_map)
 
-    p = sub.add_parser("bench-glass", help="time of the per-scan glass path on one core",
+    p = sub.add_parser("bench", help="time of the per-scan glass path on one core",
                        description="Per-scan time of incidence angles + classifier + registration + update on "
                        "1081-beam office scans (torch and numpy on one thread), after building a map; the "
                        "occupancy update is timed separately.")
-    p.add_argument("--scans", type=int, default=200)
-    p.add_argument("--method", default="robust3")
-    p.add_argument("--angle-method", default="split-merge", choices=["split-merge", "hough"])
+    p.add_argument("--scans", type=int, default=200, help="scans to time (default: %(default)s)")
+    p.add_argument("--method", default="robust3", help="registration method (default: %(default)s)")
+    p.add_argument("--angle-method", default="split-merge", choices=["split-merge", "hough"],
+                   help="incidence-angle method (default: %(default)s)")
     p.add_argument("--link-lag", type=int, default=None,
                    help="split-merge second pass look-back (AngleParams.link_lag; 0 = no second pass)")
     p.set_defaults(func=cmd_bench)
@@ -124,7 +139,7 @@ def cmd_train(args) -> int:
     return 0
 
 
-def cmd_eval(args) -> int:
+def cmd_experiment(args) -> int:
     from .eval.experiment import box_plot, format_summary, rows_of, run_trials, summarise, sweep, sweep_plot, write_csv
     from .eval.pose_error import PoseErrorModel
     from .eval.trial import DEFAULT_METHODS, TrialConfig
@@ -144,7 +159,7 @@ def cmd_eval(args) -> int:
     os.makedirs(args.out, exist_ok=True)
     seeds = list(range(args.seed, args.seed + args.trials))
     t0 = time.perf_counter()
-    rows = rows_of(run_trials(cfg, seeds, args.workers))
+    rows = rows_of(run_trials(cfg, seeds, args.workers or None))
     csv_path = write_csv(os.path.join(args.out, "trials.csv"), rows)
     title = (f"{args.world}, {args.trials} trials, sigma_xy {args.sigma_xy * 100:.0f} cm, "
              f"sigma_theta {math.degrees(args.sigma_theta):.2f} deg, map from {args.map_poses} poses")
@@ -155,7 +170,7 @@ def cmd_eval(args) -> int:
     if args.sweep:
         sig = [float(s) for s in args.sweep_sigmas.split(",") if s]
         sseeds = list(range(args.seed, args.seed + args.sweep_trials))
-        srows = sweep(cfg, sig, sseeds, args.workers)
+        srows = sweep(cfg, sig, sseeds, args.workers or None)
         write_csv(os.path.join(args.out, "sweep.csv"), srows)
         sweep_plot(os.path.join(args.out, "sweep.png"), srows)
         result["sweep"] = {}

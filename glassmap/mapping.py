@@ -33,7 +33,7 @@ class MappingInputError(ValueError):
 class MapperConfig:
     """Settings of the glass path.
 
-    angle_method: "split-merge" (default, chosen from `glassmap angles`) or "hough".
+    angle_method: "split-merge" (default, chosen from `glassmap glass angles`) or "hough".
     registration: "direct" (nearest occupied cell only) or "robust" (k x k window, eq. 6).
     window: k (3 or 5). decay_ref: eq. 6 distance from c_hat_j ("cell", default) or from the end point.
     aggregation: "scan" (mean log-odds per cell per scan, default) or "beam" (every beam, the paper).

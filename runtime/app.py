@@ -28,7 +28,7 @@ from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
 from runtime.map_worker import MapWorker, map_messages
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
-from runtime.pipeline import ProcessingStage, ScanResult
+from runtime.pipeline import ProcessingStage, ScanResult, StageStats
 from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder
 from runtime.shutdown import StopRequest, handle_signals
@@ -61,11 +61,7 @@ class LatencyLog:
 class RunSummary:
     """What a run did (counters, files written)."""
 
-    scans_received: int = 0
-    scans_processed: int = 0
-    dropped_overflow: int = 0
-    dropped_stale: int = 0
-    odometry: int = 0
+    stages: StageStats = field(default_factory=StageStats)
     laser_reconnects: int = 0
     base_reconnects: int = 0
     recording: str = ""
@@ -76,7 +72,7 @@ class RunSummary:
     duration: float = 0.0
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        return dataclasses.asdict(self)
 
 
 class Runtime:
@@ -365,12 +361,8 @@ class Runtime:
                 log.error("closing the laser failed: %s", exc)
 
     def _fill_summary(self) -> None:
-        s = self.summary
         if self.stage is not None:
-            st = self.stage.stats
-            s.scans_received, s.scans_processed = st.scans_received, st.scans_processed
-            s.dropped_overflow, s.dropped_stale = st.dropped_overflow, st.dropped_stale
-            s.odometry = st.odometry_received
+            self.summary.stages = self.stage.stats
 
 
 def _record_info_logs(handler: logging.Handler):

@@ -58,9 +58,7 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
                                                progress=True)))
         s = res.summary
         recording = res.recording
-        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time): {s.scans_received} scans received, "
-                     f"{s.scans_processed} processed, dropped {s.dropped_overflow} (queue full) + "
-                     f"{s.dropped_stale} (stale)")
+        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time): {s.stages.summary()}")
         lines.append(f"  latency scan bytes in -> maps updated: {_ms(res.latency)}")
         skip = int(round(STARTUP_S * 40))
         if len(res.latency) > 2 * skip:

@@ -1,4 +1,11 @@
-"""``glassmap run | demo | replay | bench | recover``: the runtime's command-line tools."""
+"""The ``glassmap`` command: the root parser and the runtime's own commands (``run``, ``demo``, ``replay``,
+``bench``, ``recover``).
+
+The root lives in the runtime, the top layer, because it gathers every part's commands: groups by what they
+act on (``sim``, ``glass``, ``pose``, ``hokuyo``, ``pioneer``), each with its own ``register(subparsers)``.
+Command modules import heavy dependencies (torch, the simulator) inside their handlers, so that
+``glassmap --help`` stays fast.
+"""
 
 from __future__ import annotations
 
@@ -6,11 +13,50 @@ import argparse
 import asyncio
 import logging
 import math
+import os
 import sys
 
+import drivers.hokuyo.cli
+import drivers.pioneer.cli
+import glassmap.glass_cli
+import glassmap.pose.cli
+import glassmap.sim.cli
+from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
 
 log = logging.getLogger(__name__)
+
+GROUPS = (glassmap.sim.cli, glassmap.glass_cli, glassmap.pose.cli, drivers.hokuyo.cli, drivers.pioneer.cli)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="glassmap",
+        description="Online glass confidence maps from a 2D laser rangefinder. The runtime's jobs (run on the "
+        "robot, demo against emulated hardware, replay recordings, bench, recover) are top-level commands; the "
+        "parts are groups with the same verbs (eval: accuracy, bench: timing, experiment: the paper's "
+        "experiment).")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    register(sub)
+    for group in GROUPS:
+        group.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into head & co.: stop quietly, like other command-line tools
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,21 +84,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         "commands, build the maps online, then write the glass confidence map PNG and the MCAP recording and "
         "print the classification error against the blueprint.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    d.add_argument("--world", default="office", help="simulator world (office, glass-corridor, room, lobby, or a file)")
+    add_world(d)
     d.add_argument("--route", default=None, help="route of the world (default: its default route)")
     d.add_argument("--speed", type=float, default=2.0, help="run the emulated devices this many times faster "
                    "than real time (scans come at 40 x speed Hz; scans the processing cannot keep up with are "
                    "dropped and counted)")
     d.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S emulated seconds (default: when the route is done)")
-    d.add_argument("--out", default="out/demo", help="output directory (maps, demo.mcap)")
+    add_out(d, "out/demo", "output directory (maps, demo.mcap)")
     d.add_argument("--no-record", action="store_true", help="do not write the MCAP recording")
-    d.add_argument("--seed", type=int, default=0, help="seed of the simulated robot and laser noise")
+    add_seed(d, what="seed of the simulated robot and laser noise")
     d.add_argument("--registration", choices=("direct", "robust"), default=None,
                    help="glass registration (default: mapping.registration, robust)")
     d.add_argument("--window", type=int, choices=(3, 5), default=None,
                    help="robust registration window k (default: mapping.window, 3)")
-    d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(d)
     add_config_flags(d)
     d.set_defaults(func=cmd_demo)
 
@@ -67,16 +113,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("files", nargs="+", metavar="FILE", help="recordings or bags")
     r.add_argument("--source", choices=("messages", "raw"), default="messages",
                    help="decoded /scan + /odom messages, or the raw device bytes (glassmap recordings only)")
-    r.add_argument("--out", default="out/replay", help="output directory (one map set per file)")
+    add_out(r, "out/replay", "output directory (one map set per file)")
     r.add_argument("--all-scans", action="store_true", help="process every scan, also those the live run "
                    "dropped (default: only the scans the live run processed, so the maps can match)")
-    r.add_argument("--world", default=None, help="score the map against this simulator world's blueprint")
+    add_world(r, None, "score the map against this simulator world's blueprint")
     r.add_argument("--limit", type=int, default=None, metavar="N", help="stop after N scans (a quick look)")
-    r.add_argument("--workers", type=int, default=None, help="parallel processes for several files "
-                   "(default: one per core)")
+    add_workers(r, "parallel processes for several files")
     r.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, "
                    "e.g. tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(r)
     add_config_flags(r)
     r.set_defaults(func=cmd_replay)
 
@@ -87,11 +132,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "possible from the messages and from the raw bytes. Prints per-stage time per scan, throughput "
         "(scans/s and x real time), latency p50/p99 and peak memory.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    b.add_argument("--world", default="office", help="simulator world")
+    add_world(b)
     b.add_argument("--duration", type=float, default=20.0, help="emulated seconds of the live run")
     b.add_argument("--recording", default=None, help="replay this recording instead of recording a new one "
                    "(no live latency figures then)")
-    b.add_argument("--out", default="out/bench", help="output directory")
+    add_out(b, "out/bench")
     b.set_defaults(func=cmd_bench)
 
     c = sub.add_parser(
@@ -138,8 +183,7 @@ def cmd_run(args) -> int:
         if exc.__cause__ is not None:
             print(f"  cause: {exc.__cause__}", file=sys.stderr)
         return 1
-    print(f"stopped: {summary.stop_reason}; scans {summary.scans_processed}/{summary.scans_received} processed, "
-          f"dropped {summary.dropped_overflow} (queue full) + {summary.dropped_stale} (stale)")
+    print(f"stopped: {summary.stop_reason}; {summary.stages.summary()}")
     for k, v in summary.exports.items():
         print(f"map {k}: {v}")
     if summary.recording:
@@ -197,7 +241,7 @@ def cmd_replay(args) -> int:
         for k, v in res.exports.items():
             print(f"map {k}: {v}")
         return 0
-    results = replay_many(jobs, workers=args.workers, dask_address=args.dask, progress=not args.no_progress)
+    results = replay_many(jobs, workers=args.workers or None, dask_address=args.dask, progress=not args.no_progress)
     ok = [r for r in results if not isinstance(r, BaseException)]
     print(summarize(ok))
     failed = 0
@@ -223,3 +267,7 @@ def cmd_recover(args) -> int:
     for t, n in sorted(rep.topics.items()):
         print(f"  {t}: {n}")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -195,9 +195,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
 def format_result(res: DemoResult) -> str:
     s = res.summary
     lines = [f"stopped: {s.stop_reason} after {s.duration:.1f} s (wall clock)",
-             f"scans: {s.scans_received} received, {s.scans_processed} processed, dropped {s.dropped_overflow} "
-             f"(queue full) + {s.dropped_stale} (stale); odometry messages: {s.odometry}; "
-             f"laser reconnects: {s.laser_reconnects}"]
+             f"{s.stages.summary()}; laser reconnects: {s.laser_reconnects}"]
     if res.estimated_final_pose is not None:
         err = np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2]))
         lines.append(f"final pose: true ({res.true_final_pose[0]:.2f}, {res.true_final_pose[1]:.2f}) m, "

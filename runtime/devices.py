@@ -49,25 +49,8 @@ class SeenCells:
         self.mask[cy[ok], cx[ok]] = True
 
 
-def world_scan_source(world, robot, seed: int, seen: SeenCells):
-    """``scan_source(t)`` for the Hokuyo emulator: the simulated scan from the robot's true laser pose (like
-    ``drivers.hokuyo.emulator.sim_scan_source``), also recording the cells it saw."""
-    from glassmap.sim.laser import LaserParams, simulate_scan
-
-    rng = np.random.default_rng(seed)
-    params = LaserParams()
-
-    def source(t: float):
-        pose = np.asarray(robot.laser_pose(), np.float64)
-        sim = simulate_scan(world, pose, rng, params)
-        seen.add(pose, sim)
-        return sim.ranges, sim.intensities
-
-    return source
-
-
 async def serve(world_name: str, speed: float, seed: int, seen_path: str | None = None, out=sys.stdout) -> int:
-    from drivers.hokuyo.emulator import HokuyoEmulator
+    from drivers.hokuyo.emulator import HokuyoEmulator, sim_scan_source
     from drivers.pioneer.emulator import PioneerEmulator
     from glassmap.sim.robot import DiffDriveRobot, RobotParams
     from glassmap.sim.world import load_world
@@ -76,7 +59,8 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
     robot = DiffDriveRobot(params=RobotParams(), pose0=tuple(world.start_pose), rng=np.random.default_rng(seed))
     pioneer = PioneerEmulator(robot, time_scale=speed, seed=seed)
     seen = SeenCells(world)
-    hokuyo = HokuyoEmulator(world_scan_source(world, robot, seed + 1, seen), time_scale=speed)
+    source = sim_scan_source(world, lambda t: robot.laser_pose(), seed + 1, on_scan=seen.add)
+    hokuyo = HokuyoEmulator(source, time_scale=speed)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -64,7 +64,8 @@ class StageStats:
 
     def summary(self) -> str:
         return (f"scans received {self.scans_received}, processed {self.scans_processed}, "
-                f"dropped: queue full {self.dropped_overflow}, stale {self.dropped_stale}")
+                f"dropped: queue full {self.dropped_overflow}, stale {self.dropped_stale}; "
+                f"odometry messages {self.odometry_received}")
 
 
 class ProcessingStage:

@@ -7,7 +7,7 @@ import argparse
 
 import pytest
 
-from glassmap.cli import build_parser
+from runtime.cli import build_parser
 
 
 def _parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
@@ -24,7 +24,8 @@ def test_every_help_formats():
         text = parser.format_help()
         assert "usage:" in text, path
         seen.append(" ".join(path))
-    assert {"demo", "run", "replay", "bench", "pose eval", "sim bench"} <= set(seen)
+    assert {"demo", "run", "replay", "bench", "recover", "pose eval", "sim bench", "glass experiment", "glass bench",
+            "hokuyo bench", "pioneer bench"} <= set(seen)
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["demo", "--help"]])

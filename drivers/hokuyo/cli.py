@@ -7,6 +7,8 @@ import asyncio
 import sys
 import time
 
+from glassmap.cli_args import add_world
+
 DEFAULT_URL = "tcp://192.168.0.10:10940"
 
 
@@ -46,8 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "from a simulated world (--world) or a synthetic rectangular room.")
     emu.add_argument("--port", type=int, default=10940, help="TCP port on 127.0.0.1 (default 10940; 0 = any)")
     emu.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead of TCP")
-    emu.add_argument("--world", default=None, help="simulated world (built-in name or TOML path); the laser "
-                     "sits at the world's start pose")
+    add_world(emu, None, "simulated world, the laser at its start pose (none: a synthetic room)")
     emu.add_argument("--time-scale", type=float, default=1.0, help="emulated seconds per real second")
     emu.add_argument("--faults", default="", help="fault spec, e.g. checksum_every=50,drop_every=70,reboot_at=400")
     emu.add_argument("--duration", type=float, default=None, help="stop after this many real seconds")

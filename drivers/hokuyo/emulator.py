@@ -174,10 +174,12 @@ def canned_scan_source(ranges: np.ndarray, intensities: np.ndarray, period: floa
     return source
 
 
-def sim_scan_source(world, laser_pose_fn: Callable[[float], np.ndarray], seed: int = 0, params=None) -> ScanSource:
+def sim_scan_source(world, laser_pose_fn: Callable[[float], np.ndarray], seed: int = 0, params=None,
+                    on_scan: Callable | None = None) -> ScanSource:
     """Scans of a simulated world (``glassmap.sim``): ``laser_pose_fn(t)`` gives the laser pose (x, y, yaw)
     in the map frame at emulated time t. ``world`` is a World or a built-in name / path. When the simulator
-    gives first and last echoes, both are served (multi-echo commands see them)."""
+    gives first and last echoes, both are served (multi-echo commands see them). ``on_scan(pose, sim)``, if
+    given, sees every simulated scan (e.g. to record which cells were seen)."""
     from glassmap.sim.laser import LaserParams, simulate_scan
     from glassmap.sim.world import load_world
 
@@ -186,7 +188,10 @@ def sim_scan_source(world, laser_pose_fn: Callable[[float], np.ndarray], seed: i
     p = params or LaserParams()
 
     def source(t: float) -> tuple[np.ndarray, np.ndarray]:
-        s = simulate_scan(w, np.asarray(laser_pose_fn(t), np.float64), rng, p)
+        pose = np.asarray(laser_pose_fn(t), np.float64)
+        s = simulate_scan(w, pose, rng, p)
+        if on_scan is not None:
+            on_scan(pose, s)
         if s.echo_ranges is None:
             return s.ranges, s.intensities
         return (np.column_stack([s.ranges, s.echo_ranges[:, 1]]),

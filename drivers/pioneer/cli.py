@@ -17,6 +17,8 @@ import sys
 import time
 from collections.abc import Awaitable, Callable
 
+from glassmap.cli_args import add_seed
+
 URL_HELP = ("robot URL: serial:///dev/ttyUSB0 (9600 baud at power-up; ?baud=N to override) or "
             "tcp://HOST:8101 (a simulator)")
 
@@ -67,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     em.add_argument("--drop-rate", type=float, default=0.0, help="probability per packet of dropped bytes")
     em.add_argument("--garbage-rate", type=float, default=0.0, help="probability per packet of garbage before it")
     em.add_argument("--still-open", action="store_true", help="start as if left open by an earlier session")
-    em.add_argument("--seed", type=int, default=0, help="seed of the odometry noise and the faults")
+    add_seed(em, what="seed of the odometry noise and the faults")
     em.set_defaults(func=_emulate)
 
     be = sub.add_parser("bench", help="codec throughput: parse, decode and integrate SIPs",
@@ -382,20 +384,3 @@ def _bench(args: argparse.Namespace) -> int:
     print("(the robot sends 10 SIPs/s)")
     return 0
 
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m drivers.pioneer.cli ACTION ...``: the same as ``glassmap pioneer ACTION ...``."""
-    import logging
-
-    parser = argparse.ArgumentParser(prog="python -m drivers.pioneer.cli")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    register(sub)
-    args = parser.parse_args(["pioneer", *(sys.argv[1:] if argv is None else argv)])
-    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return int(args.func(args) or 0)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

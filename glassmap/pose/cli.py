@@ -11,6 +11,8 @@ import json
 import os
 import sys
 
+from glassmap.cli_args import add_no_progress, add_out, add_seed, add_seeds, add_world, add_worlds
+
 DEFAULT_WORLDS = ["office", "room", "glass-corridor", "lobby"]
 
 
@@ -28,10 +30,8 @@ def register(subparsers) -> None:
                        "(RMSE, max) and final drift of the base position against the truth, the same for raw "
                        "wheel odometry, the yaw RMSE, and covariance consistency: mean NEES (3 dof; ideal 3) and "
                        "the share of scans inside the 95 % bound. Writes a CSV and a JSON summary.")
-    e.add_argument("--worlds", default=",".join(DEFAULT_WORLDS),
-                   help=f"comma-separated worlds (default: {','.join(DEFAULT_WORLDS)}; 'lobby' was not used "
-                   "while tuning)")
-    e.add_argument("--seeds", default="0", help="comma-separated seeds or a range a-b (default: 0)")
+    add_worlds(e, ",".join(DEFAULT_WORLDS))
+    add_seeds(e, "0")
     e.add_argument("--route", default=None, help="route name (default: each world's default route)")
     e.add_argument("--glass-weighting", choices=["off", "oracle"], default="off",
                    help="down-weight beams ending on glass cells: 'oracle' writes the true glass cells into the "
@@ -48,8 +48,8 @@ def register(subparsers) -> None:
     e.add_argument("--no-return-range", type=float, default=None,
                    help="how far (m) a no-return beam (+inf) clears free space in the estimator's grid "
                    "(default: OccupancyParams' default)")
-    e.add_argument("--out", default="out/pose", help="output directory for pose_eval.csv / .json (default: out/pose)")
-    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_out(e, "out/pose", "output directory for pose_eval.csv / .json")
+    add_no_progress(e)
     e.set_defaults(func=_eval)
 
     b = sub.add_parser("bench", help="time per scan of prediction + matching + covariance (median, one core)",
@@ -57,9 +57,9 @@ def register(subparsers) -> None:
                        "thread and report per-scan times: the hot path (odometry prediction + scan matching + "
                        "covariance + fusion; target <= 10 ms median), the likelihood-field rebuild (every few "
                        "scans, amortised) and the occupancy-grid update, each median / p90 / mean in ms.")
-    b.add_argument("--world", default="office", help="world (default: office)")
+    add_world(b)
     b.add_argument("--route", default="short", help="route (default: short)")
-    b.add_argument("--seed", type=int, default=0, help="seed (default: 0)")
+    add_seed(b)
     b.add_argument("--scans", type=int, default=600, help="scans to time (default: 600)")
     b.set_defaults(func=_bench)
 
@@ -67,32 +67,17 @@ def register(subparsers) -> None:
                        description="For each seed: simulate a run, estimate poses + covariances online, build "
                        "glass maps with each registration method from the estimator's laser poses and per-beam "
                        "registration sigma (sqrt(sigma_xy^2 + (r sigma_theta)^2 + sigma_r^2)), and score them "
-                       "against the blueprint (classification error, as in `glassmap eval`). Writes a CSV, a "
+                       "against the blueprint (classification error, as in `glassmap glass experiment`). Writes a CSV, a "
                        "summary and a box plot.")
-    x.add_argument("--world", default="office", help="world (default: office)")
+    add_world(x)
     x.add_argument("--route", default="short", help="route (default: short; 'main' is 4x longer)")
-    x.add_argument("--seeds", default="0-9", help="seeds, comma-separated or a-b (default: 0-9)")
+    add_seeds(x, "0-9")
     x.add_argument("--methods", default="direct,robust3,robust5",
                    help="registration methods (default: direct,robust3,robust5)")
     x.add_argument("--glass-every", type=int, default=4, help="map glass on every k-th scan (default: 4 = 10 Hz)")
-    x.add_argument("--out", default="out/pose", help="output directory (default: out/pose)")
+    add_out(x, "out/pose")
     x.set_defaults(func=_experiment)
 
-
-def _seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part[1:]:
-            a, b = part.split("-", 1)
-            out.extend(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    if not out:
-        raise SystemExit(f"no seeds in {text!r}")
-    return out
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -104,7 +89,7 @@ def _eval(args: argparse.Namespace) -> int:
     from glassmap.pose.evaluate import evaluate_run
 
     worlds = [w.strip() for w in args.worlds.split(",") if w.strip()]
-    seeds = _seeds(args.seeds)
+    seeds = args.seeds
     oracle = args.glass_weighting == "oracle"
     cfg = replace(EstimatorConfig(), glass_weighting=oracle)
     if args.every_scan:
@@ -197,7 +182,7 @@ def _experiment(args: argparse.Namespace) -> int:
     from glassmap.eval.experiment import box_plot, format_summary, summarise, write_csv
     from glassmap.pose.experiment import OnlineTrialConfig, run_online_trial
 
-    seeds = _seeds(args.seeds)
+    seeds = args.seeds
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every)
     clf = GlassClassifier.load_default()

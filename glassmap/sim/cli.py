@@ -10,6 +10,8 @@ import math
 import os
 import sys
 
+from glassmap.cli_args import add_no_progress, add_out, add_seed, add_world
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -30,16 +32,16 @@ def register(subparsers) -> None:
                        "intensities, 40 Hz), odometry (10 Hz), true poses and per-beam labels (material, true "
                        "range, incidence angle, glass) to an .npz file (glassmap.sim.dataset.SimRun). The same "
                        "--seed gives the same file contents.")
-    r.add_argument("--world", default="office", help="built-in world name or .toml path (default: office)")
+    add_world(r)
     r.add_argument("--route", default=None, help="route name in the world (default: the world's default route)")
-    r.add_argument("--seed", type=int, default=0, help="random seed for odometry and laser noise (default: 0)")
-    r.add_argument("--out", default=None, help="output .npz (default: out/sim/<world>-<route>-s<seed>.npz)")
+    add_seed(r, what="random seed for odometry and laser noise")
+    add_out(r, None, "output .npz (None: out/sim/<world>-<route>-s<seed>.npz)")
     r.add_argument("--max-v", type=float, default=0.5, help="largest forward speed, m/s (default: 0.5)")
     r.add_argument("--max-omega-deg", type=float, default=60.0, help="largest turn rate, deg/s (default: 60)")
     r.add_argument("--no-multi-echo", action="store_true", help="do not record the last echo")
     r.add_argument("--perfect-odometry", action="store_true", help="odometry without systematic or random error")
     r.add_argument("--uncompressed", action="store_true", help="write an uncompressed .npz (faster, larger)")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(r)
     r.set_defaults(func=_run)
 
     d = sub.add_parser("render", help="PNG of a world, of its blueprint, or of a scan at a pose",
@@ -47,21 +49,21 @@ def register(subparsers) -> None:
                        "'blueprint' (ground truth grid: free white, wall dark, glass red; north up) or 'scan' "
                        "(a simulated scan at --pose, end points coloured by material or intensity).")
     d.add_argument("what", choices=["world", "blueprint", "scan"], help="what to render")
-    d.add_argument("--world", default="office", help="built-in world name or .toml path (default: office)")
-    d.add_argument("--out", default=None, help="output PNG (default: out/sim/<world>-<what>.png)")
+    add_world(d)
+    add_out(d, None, "output PNG (None: out/sim/<world>-<what>.png)")
     d.add_argument("--resolution", type=float, default=0.05, help="blueprint cell size, m (default: 0.05)")
     d.add_argument("--pose", default=None, help="laser pose 'x,y,yaw_deg' in the map frame for 'scan' "
                    "(default: the world's start pose with the laser mount offset)")
     d.add_argument("--color-by", choices=["material", "intensity"], default="material",
                    help="scan end-point colours (default: material)")
-    d.add_argument("--seed", type=int, default=0, help="random seed of the scan (default: 0)")
+    add_seed(d, what="random seed of the scan")
     d.set_defaults(func=_render)
 
     b = sub.add_parser("bench", help="time to simulate one scan (median / p90 ms, one core)",
                        description="Time simulate_scan for one 1081-beam scan at poses along the world's "
                        "default route, pinned to one CPU core with numpy/BLAS/torch limited to one thread. "
                        "Target: at most 2 ms per scan of 'office'.")
-    b.add_argument("--world", default="office", help="built-in world name or .toml path (default: office)")
+    add_world(b)
     b.add_argument("-n", type=int, default=400, help="number of timed scans (default: 400)")
     b.add_argument("--cpu", type=int, default=None, help="CPU to pin to (default: the first allowed one)")
     b.set_defaults(func=_bench)

@@ -59,5 +59,5 @@ def test_bad_inputs(clf, tmp_path):
     with pytest.raises(ValueError, match="finite"):
         clf.predict(np.array([np.nan]), np.array([1.0]), np.array([0.1]))
     assert clf.predict(np.zeros(0), np.zeros(0), np.zeros(0)).shape == (0,)
-    with pytest.raises(ClassifierError, match="glassmap train"):
+    with pytest.raises(ClassifierError, match="glassmap glass train"):
         GlassClassifier.load(tmp_path / "missing")

@@ -1,5 +1,5 @@
 """The experiment's parts: pose-error statistics, map and classifier metrics with known numbers, a quick
-trial, and the `glassmap eval` quick mode."""
+trial, and the `glassmap glass experiment` quick mode."""
 
 import math
 
@@ -69,9 +69,9 @@ def test_quick_trial_scores_every_method_and_zero_sigma_ties():
 
 
 def test_eval_cli_quick_mode(tmp_path):
-    from glassmap.cli import main
+    from runtime.cli import main
 
-    rc = main(["eval", "--trials", "2", "--duration", "5", "--methods", "direct,robust3", "--workers", "2",
+    rc = main(["glass", "experiment", "--trials", "2", "--duration", "5", "--methods", "direct,robust3", "--workers", "2",
                "--out", str(tmp_path)])
     assert rc == 0
     rows = (tmp_path / "trials.csv").read_text().splitlines()

@@ -35,7 +35,7 @@ async def test_simulated_world_scans_reach_the_client_unchanged():
 
 
 async def run_cli(*args: str) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "glassmap.cli", "hokuyo", *args,
+    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "runtime.cli", "hokuyo", *args,
                                                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     out, err = await asyncio.wait_for(proc.communicate(), 40)
     return proc.returncode, out.decode(), err.decode()

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.timeout(60)
 
 async def run_cli(*args: str) -> asyncio.subprocess.Process:
     return await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "drivers.pioneer.cli", *args, stdout=asyncio.subprocess.PIPE,
+        sys.executable, "-m", "runtime.cli", "pioneer", *args, stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE)
 
 
@@ -72,9 +72,9 @@ async def test_signal_stops_the_robot(emulator_factory, sig):
 
 
 def test_bench_prints_figures(capsys):
-    from drivers.pioneer.cli import main
+    from runtime.cli import main
 
-    assert main(["bench", "--packets", "500"]) == 0
+    assert main(["pioneer", "bench", "--packets", "500"]) == 0
     out = capsys.readouterr().out
     assert "packets/s" in out and "500/500 recovered" in out
 
@@ -88,7 +88,7 @@ async def test_teleop_restores_the_terminal(emulator_factory, how):
     master, slave = os.openpty()
     before = termios.tcgetattr(slave)
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "drivers.pioneer.cli", "drive", url, "--teleop", "--time-scale", str(SCALE),
+        sys.executable, "-m", "runtime.cli", "pioneer", "drive", url, "--teleop", "--time-scale", str(SCALE),
         stdin=slave, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     try:
         await eventually(lambda: emu.motors_enabled, timeout=30, what="motors enabled")

@@ -44,10 +44,10 @@ def test_demo_drives_maps_records_and_scores(demo):
     res, out = demo
     s = res.summary
     assert s.stop_reason == "duration 8 s (emulated) reached"
-    assert s.scans_processed > 5  # how many depends on the machine's load: the rest are dropped and counted
-    assert s.scans_received >= s.scans_processed + s.dropped_overflow + s.dropped_stale
-    assert s.scans_received > 150  # 40 Hz x 8 emulated s, minus start-up
-    assert s.odometry > 40  # 10 Hz SIPs
+    assert s.stages.scans_processed > 5  # how many depends on the machine's load: the rest are dropped and counted
+    assert s.stages.scans_received >= s.stages.scans_processed + s.stages.dropped_overflow + s.stages.dropped_stale
+    assert s.stages.scans_received > 150  # 40 Hz x 8 emulated s, minus start-up
+    assert s.stages.odometry_received > 40  # 10 Hz SIPs
     # The robot was driven along the office corridor by velocity commands from the estimated pose.
     assert res.true_final_pose[0] > 1.2 + 0.5
     assert abs(res.true_final_pose[1] - 1.2) < 0.3
@@ -92,8 +92,8 @@ def test_recording_opens_with_anyreader_and_has_every_topic(demo):
     with AnyReader([Path(res.recording)]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
         assert TOPICS <= set(counts), set(counts) ^ TOPICS
-        assert counts["/pose"] == res.summary.scans_processed
-        assert counts["/scan"] == res.summary.scans_received
+        assert counts["/pose"] == res.summary.stages.scans_processed
+        assert counts["/scan"] == res.summary.stages.scans_received
         for con, _, raw in reader.messages([c for c in reader.connections if c.topic == "/tf_static"]):
             tf = reader.deserialize(raw, con.msgtype).transforms[0]
             assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", "laser")
@@ -110,7 +110,7 @@ def test_replay_of_the_messages_gives_exactly_the_live_maps(demo):
     live = np.load(res.summary.exports["npy"])
     # From the decoded messages: exactly the same inputs, so exactly the same maps.
     r = replay_file(res.recording, source="messages", out_dir=str(out / "messages"), progress=False)
-    assert r.scans == res.summary.scans_processed
+    assert r.scans == res.summary.stages.scans_processed
     np.testing.assert_array_equal(np.load(r.exports["npy"]), live)
     assert r.final_pose == pytest.approx(tuple(res.estimated_final_pose), abs=0)
 
@@ -121,7 +121,7 @@ def test_replay_through_the_drivers_gives_the_same_maps(demo):
     # From the raw bytes through the drivers' decoders: the same scans and odometry; the stamps differ by
     # the scheduling delay the live client saw in its clock-sync round trips (sub-millisecond to a few ms).
     r = replay_file(res.recording, source="raw", out_dir=str(out / "raw"), progress=False)
-    assert r.scans == res.summary.scans_processed
+    assert r.scans == res.summary.stages.scans_processed
     again = np.load(r.exports["npy"])
     assert again.shape == live.shape
     # Stamps a fraction of a millisecond apart move poses by fractions of a millimetre, which flips
@@ -199,7 +199,7 @@ def test_processing_crash_stops_the_robot(tmp_path):
 
 def _glassmap(*args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "glassmap.cli", *args], cwd=ROOT, env=env,
+    return subprocess.Popen([sys.executable, "-m", "runtime.cli", *args], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
@@ -270,7 +270,7 @@ def test_many_replays_in_a_process_pool(demo):
     jobs = [ReplayJob(res.recording, with_settings(base, registration=reg), out_dir=str(out / "pool"), stem=reg)
             for reg in ("direct", "robust")]
     results = replay_many(jobs, workers=2, progress=False)
-    assert [r.scans for r in results] == [res.summary.scans_processed] * 2
+    assert [r.scans for r in results] == [res.summary.stages.scans_processed] * 2
     assert all(Path(r.exports["png"]).is_file() for r in results)
 
 
@@ -286,7 +286,7 @@ def test_replays_on_a_dask_cluster(demo):
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
         results = replay_many(jobs, dask_address=cluster.scheduler_address, progress=False)
-    assert [r.scans for r in results] == [res.summary.scans_processed]
+    assert [r.scans for r in results] == [res.summary.stages.scans_processed]
     assert Path(results[0].exports["png"]).is_file()
 
 
@@ -301,6 +301,6 @@ def test_real_devices_short_run(tmp_path):
     cfg.output.out_dir = str(tmp_path)
     cfg.output.record = str(tmp_path / "real.mcap")
     summary = asyncio.run(Runtime(cfg).run(duration=5.0))
-    assert summary.scans_processed > 0 and summary.odometry > 0
+    assert summary.stages.scans_processed > 0 and summary.stages.odometry_received > 0
     with AnyReader([tmp_path / "real.mcap"]) as reader:
         assert {"/scan", "/odom", "/raw/laser", "/raw/base"} <= {c.topic for c in reader.connections}

@@ -2,7 +2,7 @@
 
 import pytest
 
-from glassmap.cli import main
+from runtime.cli import main
 from glassmap.sim.dataset import SimRun
 
 
