@@ -1,4 +1,4 @@
-"""Incidence angles of laser beams from straight lines in the scan (METHOD.md section 2).
+"""Incidence angles of laser beams from straight lines in the scan (docs/method.md section 2).
 
 The incidence angle of beam k is the angle between the beam direction and the normal of the line segment
 its end point lies on, in [0, pi/2] rad. Everything is in the laser frame (metres, radians). Beams whose end

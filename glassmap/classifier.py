@@ -1,4 +1,4 @@
-"""Per-beam glass classifier (METHOD.md section 2): f(intensity, distance, incidence) -> p(glass).
+"""Per-beam glass classifier (docs/method.md section 2): f(intensity, distance, incidence) -> p(glass).
 
 A torch MLP with 4 fully connected layers and a softmax over {not glass, glass} (class 1 = glass).
 Inputs are normalised: features (log1p(intensity), distance in metres, incidence in radians) are

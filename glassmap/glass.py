@@ -1,4 +1,4 @@
-"""The temporary glass map and the glass confidence map (METHOD.md sections 4 and 5).
+"""The temporary glass map and the glass confidence map (docs/method.md sections 4 and 5).
 
 The temporary glass map is a layer of the shared :class:`~glassmap.grid.MapGrid` (default name ``"glass"``)
 holding log-odds of "the object in this cell is glass" (float32, 0 = p 0.5 = no evidence, clamped to

@@ -1,4 +1,4 @@
-"""The per-scan glass path (METHOD.md sections 2-5): incidence angles, classifier, registration, update.
+"""The per-scan glass path (docs/method.md sections 2-5): incidence angles, classifier, registration, update.
 
 :class:`GlassMapper` owns (or shares) an occupancy grid and a temporary glass map on one
 :class:`~glassmap.grid.MapGrid`. ``process`` takes one scan (laser frame), the laser pose in the map frame

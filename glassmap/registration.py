@@ -1,4 +1,4 @@
-"""Registration of per-beam glass probabilities onto grid cells (METHOD.md section 3, eq. 6).
+"""Registration of per-beam glass probabilities onto grid cells (docs/method.md section 3, eq. 6).
 
 Pure numpy, vectorized over beams (no per-beam loop). Frames: end points are in the map frame (metres);
 cells are (ix, iy) of a :class:`~glassmap.grid.MapGrid`, flat index ``iy * width + ix``.

@@ -31,7 +31,8 @@ class ConfigError(ValueError):
     """A configuration file or flag is wrong; the message names the file, the key and the problem."""
 
 
-def _f(default: Any, help: str) -> Any:
+def setting(default: Any, help: str) -> Any:
+    """A config field with its default and the help text its command-line flag shows."""
     return field(default=default, metadata={"help": help})
 
 
@@ -39,13 +40,13 @@ def _f(default: Any, help: str) -> Any:
 class LaserConfig:
     """Hokuyo settings (ROS urg_node parameter names)."""
 
-    ip_address: str = _f("192.168.0.10", "laser IP address (UTM-30LX-EW default 192.168.0.10)")
-    ip_port: int = _f(10940, "laser TCP port")
-    serial_port: str = _f("", "laser serial device for USB models (e.g. /dev/ttyACM0); wins over ip_address")
-    serial_baud: int = _f(115200, "laser serial baud rate")
-    laser_frame_id: str = _f("laser", "frame id of the laser in the recording")
-    cluster: int = _f(1, "SCIP cluster count (adjacent steps merged)")
-    skip: int = _f(0, "SCIP skip count (scans skipped between two sent)")
+    ip_address: str = setting("192.168.0.10", "laser IP address (UTM-30LX-EW default 192.168.0.10)")
+    ip_port: int = setting(10940, "laser TCP port")
+    serial_port: str = setting("", "laser serial device for USB models (e.g. /dev/ttyACM0); wins over ip_address")
+    serial_baud: int = setting(115200, "laser serial baud rate")
+    laser_frame_id: str = setting("laser", "frame id of the laser in the recording")
+    cluster: int = setting(1, "SCIP cluster count (adjacent steps merged)")
+    skip: int = setting(0, "SCIP skip count (scans skipped between two sent)")
 
     def url(self) -> str:
         if self.serial_port:
@@ -57,13 +58,13 @@ class LaserConfig:
 class BaseConfig:
     """Pioneer settings (ROS RosAria parameter names where they exist)."""
 
-    port: str = _f("/dev/ttyUSB0", "base serial device, or HOST:PORT of a TCP simulator (RosAria 'port')")
-    baud: int = _f(9600, "base serial baud rate at connection (the P3-DX powers up at 9600)")
-    odom_frame: str = _f("odom", "odometry frame id")
-    base_link_frame: str = _f("base_link", "robot base frame id")
-    max_v: float = _f(0.5, "speed limit for commanded forward velocity (m/s)")
-    max_omega: float = _f(1.0472, "speed limit for commanded rotation (rad/s)")
-    enable_motors: bool = _f(False, "enable the motors at connection (needed to drive; off = never moves)")
+    port: str = setting("/dev/ttyUSB0", "base serial device, or HOST:PORT of a TCP simulator (RosAria 'port')")
+    baud: int = setting(9600, "base serial baud rate at connection (the P3-DX powers up at 9600)")
+    odom_frame: str = setting("odom", "odometry frame id")
+    base_link_frame: str = setting("base_link", "robot base frame id")
+    max_v: float = setting(0.5, "speed limit for commanded forward velocity (m/s)")
+    max_omega: float = setting(1.0472, "speed limit for commanded rotation (rad/s)")
+    enable_motors: bool = setting(False, "enable the motors at connection (needed to drive; off = never moves)")
 
     def url(self) -> str:
         if self.port.startswith("/"):
@@ -78,59 +79,59 @@ class BaseConfig:
 class MappingConfig:
     """Glass mapping and pose estimation settings."""
 
-    map_frame: str = _f("map", "map frame id")
-    registration: str = _f("robust", "glass registration: direct | robust")
-    window: int = _f(3, "robust registration window k (3 or 5)")
-    aggregation: str = _f("scan", "evidence aggregation per cell: scan | beam")
-    decay_reference: str = _f("cell", "eq. 6 decay from the nearest occupied 'cell' or the beam 'endpoint'")
-    occupancy_update: str = _f("mapper", "who integrates each scan into the occupancy grid at the corrected "
+    map_frame: str = setting("map", "map frame id")
+    registration: str = setting("robust", "glass registration: direct | robust")
+    window: int = setting(3, "robust registration window k (3 or 5)")
+    aggregation: str = setting("scan", "evidence aggregation per cell: scan | beam")
+    decay_reference: str = setting("cell", "eq. 6 decay from the nearest occupied 'cell' or the beam 'endpoint'")
+    occupancy_update: str = setting("mapper", "who integrates each scan into the occupancy grid at the corrected "
                                          "pose: 'mapper' (glass-aware: cells hit by glass-classified beams "
                                          "are kept occupied and not cleared) or 'estimator' (plain)")
-    glass_weighting: bool = _f(False, "scan matching down-weights beams ending on likely glass (the glass map)")
-    deskew: bool = _f(True, "undo the robot's motion during each laser sweep with the odometry before scan "
+    glass_weighting: bool = setting(False, "scan matching down-weights beams ending on likely glass (the glass map)")
+    deskew: bool = setting(True, "undo the robot's motion during each laser sweep with the odometry before scan "
                             "matching (a real laser sweeps its 270 deg in ~19 ms; the demo's emulated laser "
                             "does not, so the demo turns this off)")
-    max_free_range: float = _f(20.0, "a beam clears free space at most this far (m); glass lets beams through")
-    no_return_range: float = _f(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
+    max_free_range: float = setting(20.0, "a beam clears free space at most this far (m); glass lets beams through")
+    no_return_range: float = setting(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
                                      "(near glass 'no return' often means the pulse was reflected away; 20 m "
                                      "made the office glass map's error 37 % instead of 12 %)")
-    keyframe_distance: float = _f(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
+    keyframe_distance: float = setting(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
                                         "when the base moved this far (m) since the last key scan (0 with "
                                         "keyframe_angle_deg 0 = every scan); every scan still gets a pose and "
                                         "the glass update")
-    keyframe_angle_deg: float = _f(2.0, "motion filter: ... or turned this much (deg) since the last key scan")
-    keyframe_max_scans: int = _f(20, "motion filter: ... or this many scans passed since it (0 = no limit)")
-    classifier_weights: str = _f("", "classifier weights stem (path without .pt/.json); '' = the shipped weights")
-    laser_x: float = _f(0.1, "laser mount in the base frame: x (m, forward of the axle)")
-    laser_y: float = _f(0.0, "laser mount in the base frame: y (m, left)")
-    laser_yaw: float = _f(0.0, "laser mount in the base frame: yaw (rad)")
-    initial_x: float = _f(0.0, "initial pose of the base in the map frame: x (m)")
-    initial_y: float = _f(0.0, "initial pose of the base in the map frame: y (m)")
-    initial_yaw: float = _f(0.0, "initial pose of the base in the map frame: yaw (rad)")
+    keyframe_angle_deg: float = setting(2.0, "motion filter: ... or turned this much (deg) since the last key scan")
+    keyframe_max_scans: int = setting(20, "motion filter: ... or this many scans passed since it (0 = no limit)")
+    classifier_weights: str = setting("", "classifier weights stem (path without .pt/.json); '' = the shipped weights")
+    laser_x: float = setting(0.1, "laser mount in the base frame: x (m, forward of the axle)")
+    laser_y: float = setting(0.0, "laser mount in the base frame: y (m, left)")
+    laser_yaw: float = setting(0.0, "laser mount in the base frame: yaw (rad)")
+    initial_x: float = setting(0.0, "initial pose of the base in the map frame: x (m)")
+    initial_y: float = setting(0.0, "initial pose of the base in the map frame: y (m)")
+    initial_yaw: float = setting(0.0, "initial pose of the base in the map frame: yaw (rad)")
 
 
 @dataclass
 class PipelineConfig:
     """Processing stage settings."""
 
-    queue_size: int = _f(4, "scans waiting for processing; when full the oldest is dropped (and counted)")
-    max_scan_age: float = _f(0.5, "a scan older than this (s, host clock) when processing starts is dropped "
+    queue_size: int = setting(4, "scans waiting for processing; when full the oldest is dropped (and counted)")
+    max_scan_age: float = setting(0.5, "a scan older than this (s, host clock) when processing starts is dropped "
                                   "(and counted) as stale")
-    odom_buffer: int = _f(400, "odometry messages kept for interpolation")
+    odom_buffer: int = setting(400, "odometry messages kept for interpolation")
 
 
 @dataclass
 class OutputConfig:
     """Files written by the runtime."""
 
-    out_dir: str = _f("out/run", "directory for maps (PNG, .npy, PGM + YAML)")
-    export_period: float = _f(10.0, "seconds between periodic map exports (0 = only at exit)")
-    map_publish_period: float = _f(2.0, "seconds between /map and /glass/map messages in the recording")
-    record: str = _f("", "MCAP file to record into ('' = no recording)")
-    record_raw: bool = _f(True, "record the raw device bytes (needed to replay through the drivers)")
-    chunk_size: int = _f(512 * 1024, "MCAP chunk size (bytes): at most this much is lost on a crash")
-    chunk_interval: float = _f(1.0, "MCAP chunk interval (s): chunks are closed at least this often")
-    compression: str = _f("zstd", "MCAP chunk compression: zstd | lz4 | none")
+    out_dir: str = setting("out/run", "directory for maps (PNG, .npy, PGM + YAML)")
+    export_period: float = setting(10.0, "seconds between periodic map exports (0 = only at exit)")
+    map_publish_period: float = setting(2.0, "seconds between /map and /glass/map messages in the recording")
+    record: str = setting("", "MCAP file to record into ('' = no recording)")
+    record_raw: bool = setting(True, "record the raw device bytes (needed to replay through the drivers)")
+    chunk_size: int = setting(512 * 1024, "MCAP chunk size (bytes): at most this much is lost on a crash")
+    chunk_interval: float = setting(1.0, "MCAP chunk interval (s): chunks are closed at least this often")
+    compression: str = setting("zstd", "MCAP chunk compression: zstd | lz4 | none")
 
 
 @dataclass

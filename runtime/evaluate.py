@@ -1,4 +1,4 @@
-"""Score an online glass confidence map against a simulated world's blueprint (METHOD.md section 6).
+"""Score an online glass confidence map against a simulated world's blueprint (docs/method.md section 6).
 
 Same rules as the paper's experiment in :mod:`glassmap.eval.trial`: the blueprint's wall/glass cells that
 were seen (hit by at least one returned beam, from the simulator's truth) and lie within ``eval_radius`` of

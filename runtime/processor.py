@@ -22,7 +22,7 @@ class MappingProcessor:
     ``mapping.occupancy_update`` chooses who integrates the scan at the corrected pose: the mapper (default;
     its update keeps cells hit by glass-classified beams occupied and protects them from being cleared by
     beams passing through the glass, so glass walls stay in the map) or the estimator (plain update; the
-    mapper then runs with ``update_occupancy=False``, as in core_api.md). Either way the integration
+    mapper then runs with ``update_occupancy=False``). Either way the integration
     happens once per key scan, after matching, at the corrected laser pose. Key scans are chosen by the
     estimator's motion filter (``EstimatorConfig.keyframe_*``: moved >= 5 cm or turned >= 2 deg since the
     last key scan, or 20 scans since it); every scan still gets a pose + covariance and the glass path

@@ -1,4 +1,4 @@
-"""The paper's experiment (METHOD.md section 6): trials with a pose-error model, maps built with direct and
+"""The paper's experiment (docs/method.md section 6): trials with a pose-error model, maps built with direct and
 robust registration on the same data, classification error against the blueprint, CSV, box plot, sweep.
 
 Modules: ``metrics`` (classifier and map metrics), ``pose_error`` (the correlated pose-error model),

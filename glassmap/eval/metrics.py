@@ -1,5 +1,5 @@
 """Metrics: binary classifier quality (balanced accuracy, precision/recall, ROC-AUC, ECE) and the glass
-map's classification error against a blueprint (METHOD.md section 6). Pure numpy."""
+map's classification error against a blueprint (docs/method.md section 6). Pure numpy."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ Each component (x, y in metres, yaw in radians) is an independent first-order Ga
 with stationary standard deviation sigma_xy (x and y each) or sigma_theta (yaw) and correlation time tau (s):
 e_k = a e_{k-1} + sqrt(1 - a^2) sigma n_k, a = exp(-dt / tau), n_k ~ N(0, 1), e_0 ~ N(0, sigma^2).
 A scan-matching SLAM drifts slowly and corrects now and then, which this reproduces; tau = 0 gives white
-noise. Registration is told the same sigmas (METHOD.md eq. 6).
+noise. Registration is told the same sigmas (docs/method.md eq. 6).
 """
 
 from __future__ import annotations

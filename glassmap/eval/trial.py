@@ -1,4 +1,4 @@
-"""One trial of the paper's experiment (METHOD.md section 6).
+"""One trial of the paper's experiment (docs/method.md section 6).
 
 The simulated robot drives a route through a world; scans are simulated at ``scan_rate``. The estimated laser
 pose is the true pose plus an error from :class:`~glassmap.eval.pose_error.PoseErrorModel`. One occupancy

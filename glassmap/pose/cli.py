@@ -37,8 +37,8 @@ def register(subparsers) -> None:
                    help="down-weight beams ending on glass cells: 'oracle' writes the true glass cells into the "
                    "grid's glass layer first (the best case of the glass map); default off")
     e.add_argument("--every-scan", action="store_true",
-                   help="match and integrate every scan (no motion filter / key scans; the behaviour before "
-                   "EstimatorConfig.keyframe_*); default: key scans only")
+                   help="match and integrate every scan (no motion filter, EstimatorConfig.keyframe_*); default: "
+                   "key scans only")
     e.add_argument("--sweep-motion", action="store_true",
                    help="simulate the robot's motion during each laser sweep (~19 ms; every beam from where the "
                    "laser is when it fires); default: all beams of a scan from one pose")

@@ -14,7 +14,7 @@ passes through and returns from what is behind, so the same pane is sometimes in
 not, and the map holds it only partly. The likelihood-field score is robust to that (a floor per point),
 and ``glass_weighting`` down-weights beams whose end point falls on a cell the ``"glass"`` layer of the
 grid believes is glass (see :meth:`PoseEstimator.glass_weights`); ``protect_glass`` stops beams through
-glass from clearing such cells. The effect is measured by ``glassmap pose eval --glass-weighting``.
+glass from clearing such cells. ``glassmap pose eval --glass-weighting`` measures the effect.
 """
 
 from __future__ import annotations
@@ -51,9 +51,8 @@ class EstimatorConfig:
         Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here. The
         map frame is defined by the first pose, so its uncertainty is zero: 0.1 mm, 0.1 mrad (not 0, to
         keep the filter's covariance positive definite). The map inherits it: an initial yaw variance is a
-        rotation of the whole map about the start (see :meth:`PoseEstimator._store_map_variance`), so 1 mrad
-        (the former default) reported 2 cm at the far end of ``office`` for an error that does not exist.
-        Set it larger when the start pose is only known in another frame.
+        rotation of the whole map about the start (see :meth:`PoseEstimator.store_map_variance`). Set it
+        larger when the start pose is only known in another frame.
     range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
         (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
     keyframe_distance, keyframe_angle, keyframe_max_scans: motion filter. Every scan gets the EKF prediction
@@ -61,7 +60,7 @@ class EstimatorConfig:
         bookkeeping/integration run only on key scans: the first scan, and any scan whose predicted pose has
         moved >= keyframe_distance (m, default 0.05) or turned >= keyframe_angle (rad, default 2 deg) since
         the last key scan, or that comes keyframe_max_scans (default 20, 0 = never forced) scans after it.
-        keyframe_distance = keyframe_angle = 0 makes every scan a key scan (the behaviour before the filter).
+        keyframe_distance = keyframe_angle = 0 makes every scan a key scan.
     field_refresh_scans: the likelihood field is rebuilt from the grid after this many key scans were
         integrated, on the next scan (a non-key scan, so the cost does not add to a key scan's), and on a
         key scan when the robot nears the edge of the field's crop or the grid grew.
@@ -87,12 +86,8 @@ class EstimatorConfig:
         placed them, and a match inherits that of the cells it matched.
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
         share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
-        off (default), the filter's own covariance (which averages every match as independent) is reported.
-        Off since the match covariance comes from the curvature of the scores below the lattice step
-        (``MatcherConfig.independent_points``): a match's error relative to the map is then mostly its own
-        scan's, and the filter's own covariance is what the key scans' measured error relative to the
-        matched map is (``glassmap pose eval`` seed 0, per axis, mm: office 2.35 measured / 2.20 reported,
-        room 1.61 / 2.12, glass-corridor 2.62 / 2.31); on, the mean NEES of room seeds 0-2 fell to 1.3-1.6.
+        off (default), the filter's own covariance (which fuses every match as independent) is reported
+        (docs/pose.md says why).
     """
 
     laser_mount: tuple[float, float, float] = (0.1, 0.0, 0.0)
@@ -167,9 +162,9 @@ class PoseEstimator:
     good as the poses that built it. So every end-point cell stores the error model of its best placement
     (the one that placed the cell itself most precisely): a shift (``pose_var_shift``, m^2 per axis) and a
     rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a match reads the model
-    of the cells under its end points (``map_cov``, ``map_region``: :meth:`_matched_map_covariance`), and
+    of the cells under its end points (``map_cov``, ``map_region``: :meth:`matched_map_covariance`), and
     the reported covariance is ``ekf.actual_cov + map_cov``. New cells inherit the matched region's
-    rotation about its pivot (:meth:`_store_map_variance`), so along a corridor the sideways uncertainty
+    rotation about its pivot (:meth:`store_map_variance`), so along a corridor the sideways uncertainty
     grows linearly with the distance from where the map's direction error came from; coming back to
     well-known ground makes it shrink again.
     """
@@ -300,7 +295,7 @@ class PoseEstimator:
                 self.ekf.correct(res.pose, res.covariance, rho)
                 st.matched += 1
                 if cfg.map_uncertainty:
-                    self.map_cov, self.map_region = self._matched_map_covariance(pts, self.ekf.pose)
+                    self.map_cov, self.map_region = self.matched_map_covariance(pts, self.ekf.pose)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -320,7 +315,7 @@ class PoseEstimator:
                 self.occupancy.ensure_scan_extent(self.laser_pose_of(self.ekf.pose), angles, ranges,
                                                   scan.geometry.range_max)
             if cfg.map_uncertainty:
-                self._store_map_variance(angles, ranges, scan.geometry.range_max)
+                self.store_map_variance(angles, ranges, scan.geometry.range_max)
             if cfg.subcell_walls:
                 self._store_hits(angles, ranges, scan.geometry.range_max)
         st.t_integrate = time.perf_counter() - t3
@@ -407,18 +402,17 @@ class PoseEstimator:
             np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
 
     # ------------------------------------------------------------------ map uncertainty
-    def _matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
+    def matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
         """3x3 covariance (x, y, yaw; map frame) of the map region under the matched end points (base-frame
         pts at pose), and that region's error model (None when no matched cell has one).
 
         A cell's error is a rigid displacement of the map around it: a shift (variance s per axis) plus a
         rotation d_th (variance v) about a pivot A (layers ``pose_var_shift``, ``pose_var_yaw``,
-        ``pose_var_pivot_x/_y``; see :meth:`_store_map_variance`). A robot at X matched against it inherits
+        ``pose_var_pivot_x/_y``; see :meth:`store_map_variance`). A robot at X matched against it inherits
         both: position error shift + d_th * u with u = perp(X - A), yaw error d_th, so per cell
         diag(s, s, 0) + v [u; 1][u; 1]^T: anisotropic (a yaw error of the map far behind the robot moves it
         sideways, not along the corridor) and correlated with yaw. The matched cells share their error (they
-        were placed by a chain of matches; measured on ``office``, the mean of the cells' true errors is as
-        large as each), so the region moves as they all do: by mean(sqrt(s)) along each axis and a rotation
+        were placed by a chain of matches), so the region moves as they all do: by mean(sqrt(s)) along each axis and a rotation
         of mean(sqrt(v)) about the sqrt(v)-weighted mean pivot. (A mean of the variances would let the few
         cells placed from far away dominate.)"""
         g = self.occupancy.grid
@@ -447,7 +441,7 @@ class PoseEstimator:
         out[1, 1] += region.shift_var
         return out, region
 
-    def _store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
+    def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
         """Give the end-point cells of this scan the error model of their placement where its own variance
         (of the cell's position) is smaller than what the cell holds (the best placement is kept).
 
@@ -456,8 +450,7 @@ class PoseEstimator:
         The two rotations are stored as one, of variance v = v_R + P_th about the variance-weighted pivot
         A = (v_R A_R + P_th X) / v, the rest going into the shift. The pivot is inherited, not reset to X:
         a wall extended from a matched wall keeps its direction error, so along a corridor the sideways
-        error grows linearly with the distance from where that error came from (measured on ``office``:
-        1 mm per metre with glass on one side), not like a random walk."""
+        error grows linearly with the distance from where that error came from, not like a random walk."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
         if not hit.any():
             return

@@ -36,8 +36,8 @@ class FieldParams:
     fine stage (bilinear interpolation of the vector is exact near a wall, that of the likelihood is not);
     line_normals: where the neighbourhood's end points form a straight wall (smaller / larger scatter
     eigenvalue below line_ratio), measure the distance along the wall's normal only (see
-    :meth:`LikelihoodField._pooled`). sigma_hit 3 cm (was 5 cm): with unbiased walls a sharper field took the
-    office ATE from 4.5 / 3.7 to 2.8 / 2.2 cm (seeds 0 / 1) when it was changed."""
+    :meth:`LikelihoodField._pooled`); sigma_hit (m): standard deviation of the Gaussian of the distance to the
+    nearest wall point."""
 
     sigma_hit: float = 0.03
     p_floor: float = 0.05

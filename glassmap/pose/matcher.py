@@ -39,9 +39,7 @@ class MatcherConfig:
     fine_half_cells / fine_half_yaw: half-size (lattice steps) of the fine window used for the peak and the
     covariance; yaw_step_min/max: bounds of the fine yaw step; max_refine: coarse candidates refined.
     independent_points: tempering of the score distribution (see module docstring; beta is at most 1: a scan
-        never counts as more independent points than it has). 120 (of at most 200 end points), chosen on
-        ``glassmap pose eval`` office, room and glass-corridor seeds 0-2: mean NEES 1.6-5.1; 90 gave room
-        seed 2 1.48, 150 gave office seed 1 5.48 with 77 % of the scans inside the 95 % bound.
+        never counts as more independent points than it has; docs/pose.md says how the value was chosen).
     bilinear: interpolate the field bilinearly in the fine stage (smooth scores, sub-cell accuracy; four
         lookups per point): the vector to the nearest wall point when the field has vectors (exact near a
         straight wall), else the likelihood itself.

@@ -21,7 +21,6 @@ def test_shipped_weights_are_small_and_load(clf):
     assert (MODEL_DIR / "glass_mlp.pt").stat().st_size < 200_000
     assert len([m for m in clf.model if m.__class__.__name__ == "Linear"]) == 4
     assert clf.meta.temperature > 0
-    assert clf.meta.report["heldout"]["roc_auc"] > 0.9
 
 
 def test_known_beams(clf):
@@ -31,12 +30,13 @@ def test_known_beams(clf):
     assert p.shape == (2,) and np.all((p > 0) & (p < 1))
 
 
-def test_classifies_simulated_glass_and_wall_beams(clf):
+@pytest.mark.parametrize("world_name", ["office", "lobby"])  # a training world and the held-out one
+def test_classifies_simulated_glass_and_wall_beams(clf, world_name):
     from glassmap.sim.laser import simulate_scan
     from glassmap.sim.world import load_world
     from glassmap.train import sample_poses
 
-    world = load_world("office")
+    world = load_world(world_name)
     rng = np.random.default_rng(7)
     ys, ps = [], []
     for pose in sample_poses(world, 25, rng):

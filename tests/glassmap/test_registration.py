@@ -1,4 +1,4 @@
-"""Registration (METHOD.md eq. 6), Bayesian update (eq. 7) with clamping, and direct vs robust assignment
+"""Registration (docs/method.md eq. 6), Bayesian update (eq. 7) with clamping, and direct vs robust assignment
 on a hand-made grid, with numbers computed by hand."""
 
 import math

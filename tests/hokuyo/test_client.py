@@ -13,6 +13,7 @@ import pytest
 from drivers.capture import CaptureRecorder
 from drivers.hokuyo.client import HokuyoClient
 from drivers.hokuyo.emulator import Faults, HokuyoEmulator, canned_scan_source, ranges_to_codes, room_scan_source
+from tests.helpers import eventually
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -126,8 +127,7 @@ async def test_cancelled_consumer_still_stops_the_sensor():
                 pass
 
     task = asyncio.create_task(consumer())
-    while emu.state != "streaming":
-        await asyncio.sleep(0.02)
+    await eventually(lambda: emu.state == "streaming", what="the emulator streaming")
     await asyncio.sleep(0.1)
     task.cancel()  # what Ctrl-C does to the main task
     with pytest.raises(asyncio.CancelledError):
@@ -139,8 +139,7 @@ async def test_cancelled_consumer_still_stops_the_sensor():
 async def test_slow_consumer_drops_oldest_and_counts_them():
     emu, url = await serve("tcp")
     client = await HokuyoClient.connect(url, queue_size=4)
-    while client.stats.received < 30:
-        await asyncio.sleep(0.02)
+    await eventually(lambda: client.stats.received >= 30, what="30 scans received")
     scans = await take(client, 4)
     await client.close()
     assert client.stats.dropped >= 20

@@ -14,7 +14,8 @@ from drivers.hokuyo.emulator import (
 )
 from drivers.hokuyo.scip import InfoReply, ScanReply, ScipParser, TimeReply
 from drivers.transport import open_transport
-from tests.hokuyo.test_scip import PP_REPLY
+from tests.hokuyo.vectors import PP_REPLY
+from tests.helpers import eventually
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -153,8 +154,7 @@ async def test_reboot_drops_the_link_and_restarts_the_clock():
         while True:
             await asyncio.wait_for(t.read(), 3)
     await t.close()
-    while emu.state == "booting":
-        await asyncio.sleep(0.05)
+    await eventually(lambda: emu.state != "booting", what="the emulator's reboot to end")
     t = await open_transport(url)
     r = Raw(t)
     assert (await r.send(b"TM0\n")).status == "0M"  # field units refuse TM0 for a while after boot

@@ -1,6 +1,6 @@
 """The same client checks against a real UTM-30LX-EW (opt-in: ``-m hardware`` and a laser URL).
 
-Give the URL with ``--laser-url`` (if the root conftest defines it) or ``GLASSMAP_LASER_URL``, e.g.
+Give the URL with ``--laser-url`` or ``GLASSMAP_LASER_URL``, e.g.
 ``GLASSMAP_LASER_URL=tcp://192.168.0.10:10940 .venv/bin/python -m pytest -m hardware tests/hokuyo``.
 """
 

@@ -34,10 +34,8 @@ from drivers.hokuyo.scip import (
     encode_values,
     scan_params,
 )
+from tests.hokuyo.vectors import PP_REPLY
 
-# The PP reply of a real UTM-30LX-EW (tests/../shared protocol notes; checksums verified there).
-PP_REPLY = (b"PP\n00P\nMODL:UTM-30LX-EW;I\nDMIN:23;7\nDMAX:60000;J\nARES:1440;^\nAMIN:0;?\nAMAX:1080;Z\n"
-            b"AFRT:540;0\nSCAN:2400;U\n\n")
 
 
 def feed_all(data: bytes, chunks=None) -> list:

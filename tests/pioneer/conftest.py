@@ -22,15 +22,6 @@ def fast_settings(**kw) -> PioneerSettings:
     return PioneerSettings(**base)
 
 
-async def eventually(pred: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
-    """Poll ``pred`` until it holds; fail (not a timing assertion: a generous bound) if it never does."""
-    end = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > end:
-            pytest.fail(f"{what} did not happen within {timeout} s")
-        await asyncio.sleep(0.01)
-
-
 @pytest.fixture
 async def emulator_factory():
     made: list[PioneerEmulator] = []

@@ -10,7 +10,8 @@ import sys
 import pytest
 
 from drivers.pioneer.packets import Cmd
-from tests.pioneer.conftest import SCALE, eventually
+from tests.helpers import eventually
+from tests.pioneer.conftest import SCALE
 
 pytestmark = pytest.mark.timeout(60)
 

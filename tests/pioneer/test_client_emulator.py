@@ -12,7 +12,8 @@ from drivers.pioneer.packets import SYNC0, SYNC1, SYNC2, Cmd, PacketParser, buil
 from drivers.pioneer.sip import SyncReply, decode_sip
 from drivers.transport import open_transport
 from glassmap.sim.robot import DiffDriveRobot, OdometryNoise
-from tests.pioneer.conftest import SCALE, drive_until, eventually, fast_settings
+from tests.helpers import eventually
+from tests.pioneer.conftest import SCALE, drive_until, fast_settings
 
 pytestmark = pytest.mark.timeout(60)
 

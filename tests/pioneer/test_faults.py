@@ -6,7 +6,8 @@ import pytest
 
 from drivers.pioneer.client import PioneerClient
 from drivers.pioneer.emulator import EmulatorFaults
-from tests.pioneer.conftest import eventually, fast_settings
+from tests.helpers import eventually
+from tests.pioneer.conftest import fast_settings
 from tests.pioneer.test_client_emulator import assert_pose_matches_controller, settle
 
 pytestmark = pytest.mark.timeout(60)

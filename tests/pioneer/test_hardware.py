@@ -1,5 +1,5 @@
 """Opt-in checks against a real Pioneer 3-DX (or a simulator): ``GLASSMAP_BASE_URL=serial:///dev/ttyUSB0
-pytest -m hardware tests/pioneer``. The drive check also needs ``GLASSMAP_BASE_DRIVE=1`` and 1 m of free
+pytest -m hardware tests/pioneer`` (or ``--base-url URL``). The drive check also needs ``GLASSMAP_BASE_DRIVE=1`` and 1 m of free
 space around the robot: it turns 30 degrees in place and back."""
 
 from __future__ import annotations
@@ -14,13 +14,17 @@ from drivers.pioneer.odometry import MODELS
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(60)]
 
-URL = os.environ.get("GLASSMAP_BASE_URL", "")
-needs_robot = pytest.mark.skipif(not URL, reason="set GLASSMAP_BASE_URL to the robot's URL")
+
+@pytest.fixture
+def base_url(request):
+    url = request.config.getoption("--base-url", default=None) or os.environ.get("GLASSMAP_BASE_URL")
+    if not url:
+        pytest.skip(reason="no robot: pass --base-url or set GLASSMAP_BASE_URL")
+    return url
 
 
-@needs_robot
-async def test_real_robot_handshake_and_sips():
-    async with PioneerClient.connect(URL) as base:
+async def test_real_robot_handshake_and_sips(base_url):
+    async with PioneerClient.connect(base_url) as base:
         assert base.info.robot_class.lower() == "pioneer" and base.model.subclass in MODELS
         n = 0
         async for odom in base.odometry():
@@ -32,12 +36,11 @@ async def test_real_robot_handshake_and_sips():
         assert base.stats.bad_checksum == 0
 
 
-@needs_robot
 @pytest.mark.skipif(os.environ.get("GLASSMAP_BASE_DRIVE") != "1", reason="set GLASSMAP_BASE_DRIVE=1 to move")
-async def test_real_robot_turns_and_returns():
+async def test_real_robot_turns_and_returns(base_url):
     from drivers.pioneer.cli import turn_by
 
-    async with PioneerClient.connect(URL, enable_motors=True) as base:
+    async with PioneerClient.connect(base_url, enable_motors=True) as base:
         yaw0 = base.latest.yaw
         await turn_by(base, math.radians(30), math.radians(20))
         await turn_by(base, math.radians(-30), math.radians(20))

@@ -1,4 +1,4 @@
-"""ARCOS framing: checksum and command vectors from the protocol notes, and the incremental parser."""
+"""ARCOS framing: checksum and command vectors from docs/protocols/pioneer-aria.md, and the incremental parser."""
 
 import pytest
 from hypothesis import given, settings

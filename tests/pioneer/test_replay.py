@@ -18,7 +18,7 @@ from drivers.pioneer.odometry import OdometryTracker, model_for
 from drivers.pioneer.packets import SIP_IDS, PacketParser
 from drivers.pioneer.sip import decode_sip, decode_sync2
 from tests.fakes.replay import replay_over_pty
-from tests.pioneer.conftest import eventually
+from tests.helpers import eventually
 from tests.pioneer.make_captures import SESSIONS
 
 pytestmark = pytest.mark.timeout(60)

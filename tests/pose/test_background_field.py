@@ -38,4 +38,4 @@ def test_background_rebuild_gives_the_inline_estimates_exactly():
 def test_an_estimator_with_a_pending_rebuild_pickles():
     _, est = _drive(True)
     clone = pickle.loads(pickle.dumps(est))
-    assert clone._pending_field is None and clone.field.ready
+    assert clone.field.ready and clone.stats == est.stats

@@ -229,7 +229,7 @@ def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
     for name, val in (("pose_var_xy", sp2 + 25 * sth2), ("pose_var_yaw", sth2), ("pose_var_pivot_x", 0.0),
                       ("pose_var_pivot_y", 0.0), ("pose_var_shift", sp2)):
         g[name][cells[:, 1], cells[:, 0]] = val
-    cov, region = est._matched_map_covariance(pts, pose)
+    cov, region = est.matched_map_covariance(pts, pose)
     assert cov[0, 0] == pytest.approx(sp2, rel=1e-3)
     assert cov[1, 1] == pytest.approx(sp2 + 16 * sth2, rel=1e-3)  # lever arm 4 m
     assert cov[1, 2] == pytest.approx(4 * sth2, rel=1e-3) and cov[2, 2] == pytest.approx(sth2, rel=1e-3)
@@ -253,13 +253,13 @@ def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
     est.ekf.cov = est.ekf.actual_cov = np.diag([1e-6, 1e-6, pth])
     angles = np.array([0.5, 0.7, -0.5, -0.7])
     ranges = np.full(4, 3.0)
-    est._store_map_variance(angles, ranges, 30.0)
+    est.store_map_variance(angles, ranges, 30.0)
     pivot_x = pth * 4.0 / (vr + pth)  # the variance-weighted pivot: 4 cm from the origin
     assert g["pose_var_yaw"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(vr + pth)
     assert g["pose_var_pivot_x"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(pivot_x, abs=1e-6)
     pose2 = np.array([12.0, 0.0, 0.0])  # the same cells seen from 8 m further on
     world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    cov, region = est._matched_map_covariance(world - pose2[:2], pose2)
+    cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
     assert cov[1, 1] == pytest.approx((vr + pth) * (12.0 - pivot_x) ** 2, rel=0.01)
     assert cov[1, 1] > 1.4 * vr * (4.0 ** 2 + 8.0 ** 2)
     # along the corridor only the shift: the filter's (1 mm)^2, plus the spread of the two pivots (the

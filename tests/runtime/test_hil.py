@@ -25,6 +25,7 @@ from runtime.devices import DeviceProcess
 from runtime.pipeline import ScanResult
 from runtime.recorder import read_mcap, recover_mcap
 from runtime.replay import replay_file
+from tests.helpers import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(180)
@@ -44,7 +45,9 @@ def test_demo_drives_maps_records_and_scores(demo):
     res, out = demo
     s = res.summary
     assert s.stop_reason == "duration 8 s (emulated) reached"
-    assert s.stages.scans_processed > 5  # how many depends on the machine's load: the rest are dropped and counted
+    # How many are processed depends on the machine's load (the rest are dropped and counted), but a loaded
+    # 2-core machine still keeps up with most of the 80 Hz stream.
+    assert s.stages.scans_processed >= 0.2 * s.stages.scans_received
     assert s.stages.scans_received >= s.stages.scans_processed + s.stages.dropped_overflow + s.stages.dropped_stale
     assert s.stages.scans_received > 150  # 40 Hz x 8 emulated s, minus start-up
     assert s.stages.odometry_received > 40  # 10 Hz SIPs
@@ -58,7 +61,11 @@ def test_demo_drives_maps_records_and_scores(demo):
     assert Path(res.png).is_file() and Path(res.png).stat().st_size > 1000
     for k in ("npy", "pgm", "yaml"):
         assert Path(s.exports[k]).is_file()
-    assert res.evaluation is not None and 0.0 <= res.evaluation.error <= 1.0 and res.evaluation.n_cells > 100
+    # 8 emulated seconds map the first stretch of the office corridor: about a third of its wall and glass
+    # cells are still unregistered (error 0.32-0.35, glass recall 0.63 measured), but what is mapped is right.
+    ev = res.evaluation
+    assert ev is not None and ev.n_cells > 100 and ev.n_glass > 50
+    assert ev.error < 0.5 and ev.glass_recall > 0.4 and ev.false_glass_rate < 0.1
 
 
 def test_recording_decodes_with_foxglove_ros2_decoder(demo):
@@ -204,11 +211,11 @@ def _glassmap(*args, **kw) -> subprocess.Popen:
 
 
 def _wait_for_size(path: Path, size: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
-    t0 = time.monotonic()
-    while not (path.exists() and path.stat().st_size > size):
+    def grown() -> bool:
         assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() - t0 < timeout, "recording did not grow"
-        time.sleep(0.2)
+        return path.exists() and path.stat().st_size > size
+
+    wait_until(grown, timeout, f"the recording growing past {size} bytes", interval=0.2)
 
 
 @pytest.mark.parametrize("sig", [pytest.param(signal.SIGINT, id="ctrl-c"),
@@ -291,12 +298,13 @@ def test_replays_on_a_dask_cluster(demo):
 
 
 @pytest.mark.hardware
-def test_real_devices_short_run(tmp_path):
-    """Against the real robot (opt-in): GLASSMAP_LASER_URL and GLASSMAP_BASE_URL name the devices. The robot
-    is not moved (motors stay disabled)."""
-    laser, base = os.environ.get("GLASSMAP_LASER_URL"), os.environ.get("GLASSMAP_BASE_URL")
+def test_real_devices_short_run(tmp_path, request):
+    """Against the real robot (opt-in): --laser-url / --base-url (or GLASSMAP_LASER_URL / GLASSMAP_BASE_URL)
+    name the devices. The robot is not moved (motors stay disabled)."""
+    laser = request.config.getoption("--laser-url") or os.environ.get("GLASSMAP_LASER_URL")
+    base = request.config.getoption("--base-url") or os.environ.get("GLASSMAP_BASE_URL")
     if not laser or not base:
-        pytest.skip(reason="set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL to run against real devices")
+        pytest.skip(reason="pass --laser-url and --base-url (or set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL)")
     cfg = RuntimeConfig(laser_url=laser, base_url=base)
     cfg.output.out_dir = str(tmp_path)
     cfg.output.record = str(tmp_path / "real.mcap")

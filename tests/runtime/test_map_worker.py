@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.mapping import GlassMapper
 from runtime import messages as M
 from runtime.map_worker import MapWorker, map_messages
+from tests.helpers import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -86,14 +86,15 @@ def test_worker_ends_when_the_runtime_process_is_killed():
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
+
+    def gone() -> bool:
         try:
             os.kill(worker_pid, 0)
         except ProcessLookupError:
-            return
-        time.sleep(0.1)
-    pytest.fail(f"map worker {worker_pid} still running 10 s after the runtime process was killed")
+            return True
+        return False
+
+    wait_until(gone, what=f"map worker {worker_pid} to end after the runtime process was killed", interval=0.1)
 
 
 def test_falls_back_to_a_thread_when_the_process_cannot_start(tmp_path):

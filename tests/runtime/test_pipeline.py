@@ -8,7 +8,7 @@ import threading
 import pytest
 
 from runtime.pipeline import ProcessingError, ProcessingStage, ScanResult
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 
 pytestmark = pytest.mark.timeout(30)
 

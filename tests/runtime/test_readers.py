@@ -14,7 +14,7 @@ from runtime import messages as M
 from runtime.readers import ReplayInputError, iter_messages, read_captures, read_metadata
 from runtime.recorder import McapRecorder
 from runtime.sink import RecordingSink, recording_metadata
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 
 STAMPS = [(0.00, "odom"), (0.01, "scan"), (0.05, "scan"), (0.10, "odom"), (0.11, "scan")]
 

@@ -16,7 +16,8 @@ from rosbags.highlevel import AnyReader
 from glassmap.types import PoseEstimate
 from runtime import messages as M
 from runtime.recorder import McapRecorder, iter_mcap_raw, read_mcap, recover_mcap
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
+from tests.helpers import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -82,8 +83,7 @@ def test_full_queue_drops_are_counted(tmp_path):
     real_channel = rec._channel
     rec._channel = lambda topic: (release.wait(10), real_channel(topic))[1]  # stall the writer thread
     assert rec.write("/rosout", M.log_msg(0, 20, "t", "first"), 0)
-    while rec.backlog:  # the thread took it and is now stalled
-        time.sleep(0.001)
+    wait_until(lambda: not rec.backlog, what="the writer thread taking the first message", interval=0.001)
     sent = [rec.write("/rosout", M.log_msg(i, 20, "t", "x"), i) for i in range(1, 51)]
     assert sent[0] and sent[1:] == [False] * 49
     assert rec.stats.dropped["/rosout"] == 49
@@ -107,7 +107,7 @@ CHILD = textwrap.dedent("""
     sys.path.insert(0, {root!r})
     from runtime import messages as M
     from runtime.recorder import McapRecorder
-    from tests.runtime.conftest import make_scan
+    from tests.runtime.factories import make_scan
     rec = McapRecorder(sys.argv[1], chunk_interval=0.1, chunk_size=10**9)
     seq = 0
     def burst(n):

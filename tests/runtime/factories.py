@@ -1,4 +1,4 @@
-"""Shared helpers for the runtime tests."""
+"""Deterministic scans and odometry for the runtime tests."""
 
 from __future__ import annotations
 
