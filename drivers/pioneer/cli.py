@@ -17,7 +17,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable
 
-from glassmap.cli_args import add_seed
+from glassmap.cli_args import add_seed, add_seeds
 
 URL_HELP = ("robot URL: serial:///dev/ttyUSB0 (9600 baud at power-up; ?baud=N to override) or "
             "tcp://HOST:8101 (a simulator)")
@@ -71,6 +71,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     em.add_argument("--still-open", action="store_true", help="start as if left open by an earlier session")
     add_seed(em, what="seed of the odometry noise and the faults")
     em.set_defaults(func=_emulate)
+
+    ev = sub.add_parser("eval", help="odometry covariance consistency (NEES) against the emulator's robot",
+                        description="Drive straight (2 m) and turn in place (360 deg) with the emulator's "
+                        "simulated P3-DX over many seeds, feed its SIPs through the driver's odometry tracker and "
+                        "compare the final error with the reported covariance: mean NEES (3 dof, ideal 3) and the "
+                        "share of runs inside the 95 % bound. 'emulator': the emulator's robot (fixed wheel-scale "
+                        "and track-width errors); 'drawn': a robot per seed with errors drawn from the model.")
+    add_seeds(ev, "0-199")
+    ev.add_argument("--robot", choices=("emulator", "drawn", "both"), default="both",
+                    help="which robots (default: %(default)s)")
+    ev.set_defaults(func=_eval)
 
     be = sub.add_parser("bench", help="codec throughput: parse, decode and integrate SIPs",
                         description="Measure the sans-IO codec: packets/s through the parser (clean and with "
@@ -339,6 +350,16 @@ def _emulate(args: argparse.Namespace) -> int:
 
 
 # -- bench ---------------------------------------------------------------------------------------------
+def _eval(args) -> int:
+    from drivers.pioneer.odometry_eval import MOTIONS, evaluate, format_result
+
+    kinds = ("emulator", "drawn") if args.robot == "both" else (args.robot,)
+    for motion in MOTIONS:
+        for kind in kinds:
+            print(format_result(evaluate(motion, kind, args.seeds)), flush=True)
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     import random
 

@@ -38,7 +38,7 @@ import numpy as np
 from glassmap.sim.robot import DiffDriveRobot
 
 from drivers.endpoints import PtyEndpoint
-from drivers.pioneer.odometry import MODELS, PioneerModel
+from drivers.pioneer.odometry import MODELS, PioneerModel, pose_to_units
 from drivers.pioneer.packets import (SYNC0, SYNC1, SYNC2, Cmd, PacketParser, build_packet, parse_int_arg,
                                      vel2_split)
 from drivers.pioneer.sip import (ConfigPacket, EncoderPacket, StandardSIP, SyncReply, encode_config,
@@ -526,10 +526,7 @@ class PioneerEmulator:
     def _sip(self) -> StandardSIP:
         m, b = self.model, self.behaviour
         x, y, th = self._reported_pose()
-        mask = (1 << b.position_bits) - 1
-        xu = int(round(x * 1000.0 / m.dist_conv)) & mask
-        yu = int(round(y * 1000.0 / m.dist_conv)) & mask
-        thu = (int(round(th / m.angle_conv)) + 2048) % 4096 - 2048
+        xu, yu, thu = pose_to_units(x, y, th, m, b.position_bits)
         wl, wr = self.robot.wheel_speeds
         v, w = self.robot.velocity
         moving = abs(v) > 1e-3 or abs(w) > 1e-3

@@ -10,19 +10,33 @@ The first SIP anchors the pose: its 15-bit positions read as signed 15-bit value
 absolute angle, so a robot whose controller odometry is within +-0x4000 units of zero (7.9 m for a p3dx,
 16.4 m for a p3dx-sh) starts at the controller's own pose; use SETO to start from zero.
 
-Covariance (odom frame, over x, y, yaw): each SIP step of travelled distance ``d`` (m) and rotation ``a``
-(rad) adds independent errors with variances
+Plausibility: a step larger than the robot can drive between two SIPs (``max_v`` and ``max_omega`` over the
+host time between them, plus a few units of quantisation) is physically impossible: a corrupted SIP that
+passed the 16-bit checksum. It is not integrated (the pose stays continuous), counted in ``rejected_steps``
+and logged. If ``reanchor_after`` consecutive SIPs all disagree with the last accepted one but agree with
+each other, the controller's odometry really jumped (a reset, SETO by another client): the tracker
+re-anchors on them without moving the pose.
 
-    var_d   = k_d**2 * |d|                      (distance error, m^2)
-    var_l   = k_l**2 * |d|                      (lateral error, m^2)
-    var_yaw = k_a**2 * |a| + k_ad**2 * |d|      (heading error from turning and from driving, rad^2)
+Covariance (odom frame, over x, y, yaw): a wheel model. Each SIP step (distance d, rotation a) is split into
+left and right wheel travel dL = d - a T / 2, dR = d + a T / 2 (T: the track width of the model) with
 
-propagated through the motion model (x += d cos(yaw_mid), y += d sin(yaw_mid), yaw += a) with its
-Jacobians. A robot that stands still keeps its covariance; it grows with distance and with turning.
+- random slip per wheel: variance ``slip**2 * |dL|`` and ``slip**2 * |dR|`` (m^2), independent;
+- systematic errors, constant for a robot: relative scale errors eps_L, eps_R of the wheels (standard
+  deviation ``scale_sigma``) and a relative error eps_T of the track width the controller assumes
+  (``track_sigma``). They are unknown, so they are states of the error model (an augmented 6 x 6
+  covariance over x, y, yaw, eps_L, eps_R, eps_T): their effect on consecutive steps is fully correlated,
+  so a track-width error makes the heading error grow linearly with the angle turned, not with its root.
+
+The step's distance error is (dL eps_L + dR eps_R + nL + nR) / 2, its rotation error
+(dR eps_R - dL eps_L + nR - nL) / T - a eps_T, propagated through the motion model (x += d cos(yaw_mid),
+y += d sin(yaw_mid), yaw += a) with its Jacobians. The reported covariance is the (x, y, yaw) block. At
+rest it does not grow. The densities are those of a P3-DX's documented odometry error magnitudes; calibrate
+them for a given robot (e.g. UMBmark square runs) and set them in ``CovarianceModel``.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -32,6 +46,8 @@ from glassmap.types import Odometry, wrap_angle
 
 from drivers.pioneer.errors import UnsupportedRobotError
 from drivers.pioneer.sip import StandardSIP
+
+log = logging.getLogger(__name__)
 
 POS_MODULO = 0x8000
 POS_MASK = 0x7FFF
@@ -78,23 +94,35 @@ def model_for(subclass: str, robot_class: str = "Pioneer") -> PioneerModel:
 
 @dataclass(frozen=True)
 class CovarianceModel:
-    """Odometry noise densities (see module docstring).
+    """Odometry error model (see module docstring).
 
-    k_d: m per sqrt(m) travelled (distance error); k_l: m per sqrt(m) (lateral error);
-    k_a: rad per sqrt(rad) turned; k_ad: rad per sqrt(m) travelled (heading drift while driving).
-    Defaults: about 3 cm and 4 deg of 1-sigma error after 1 m straight, 4 deg after a full turn in place.
+    slip: random wheel slip, m per sqrt(m) of wheel travel. scale_sigma: standard deviation of each wheel's
+    relative scale error (wheel radius). track_sigma: standard deviation of the relative error of the track
+    width the controller dead-reckons with. slack_units: quantisation allowance (position units) of the
+    plausibility check. reanchor_after: consecutive implausible but mutually consistent SIPs after which
+    the tracker re-anchors.
     """
 
-    k_d: float = 0.03
-    k_l: float = 0.015
-    k_a: float = 0.03
-    k_ad: float = 0.07
+    slip: float = 0.005
+    scale_sigma: float = 0.003
+    track_sigma: float = 0.02
+    slack_units: int = 4
+    reanchor_after: int = 3
 
 
 def _nearest(delta: int, modulo: int) -> int:
     """Bring a raw delta into [-modulo/2, modulo/2)."""
     half = modulo // 2
     return (delta + half) % modulo - half
+
+
+def pose_to_units(x: float, y: float, yaw: float, model: PioneerModel, position_bits: int = 15) -> tuple[int, int, int]:
+    """A controller pose (odom frame, m and rad) as SIP XPOS, YPOS (masked to ``position_bits``) and THPOS."""
+    mask = (1 << position_bits) - 1
+    xu = int(round(x * 1000.0 / model.dist_conv)) & mask
+    yu = int(round(y * 1000.0 / model.dist_conv)) & mask
+    thu = (int(round(yaw / model.angle_conv)) + HEADING_UNITS // 2) % HEADING_UNITS - HEADING_UNITS // 2
+    return xu, yu, thu
 
 
 def signed15(value: int) -> int:
@@ -115,13 +143,24 @@ class OdometryTracker:
         self.model = model
         self.noise = noise
         self.time_scale = float(time_scale)
+        self.track = 2.0 / (model.diff_conv * 1000.0)  # m: rad/s = diff_conv * (vR - vL) / 2 in mm/s
         self._raw: tuple[int, int, int] | None = None
+        self._stamp: float | None = None
+        self._suspects: list[tuple[int, int, int]] = []
         self.x = self.y = 0.0  # metres
         self.yaw_unwrapped = 0.0  # radians, not wrapped (total turn + initial heading)
-        self.covariance = np.zeros((3, 3))
+        self._cov = np.zeros((6, 6))  # x, y, yaw, eps_L, eps_R, eps_T
+        self._cov[3:, 3:] = np.diag([noise.scale_sigma ** 2, noise.scale_sigma ** 2, noise.track_sigma ** 2])
         self.distance = 0.0  # m travelled (absolute)
         self.rotation = 0.0  # rad turned (absolute)
-        self.max_step_units = 0  # largest position step seen (units), for diagnostics
+        self.max_step_units = 0  # largest accepted position step (units), for diagnostics
+        self.rejected_steps = 0  # SIPs not integrated: a step the robot cannot have made
+        self.reanchors = 0  # controller odometry jumps followed by re-anchoring
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(3, 3) covariance of (x, y, yaw) in the odom frame (m^2, rad^2)."""
+        return self._cov[:3, :3].copy()
 
     def reanchor(self) -> None:
         """Forget the last raw values: the next SIP anchors again (after SETO resets the controller)."""
@@ -130,27 +169,65 @@ class OdometryTracker:
     def update(self, sip: StandardSIP, stamp: float) -> Odometry:
         """Integrate one SIP received at host time ``stamp`` (s) and return the odometry."""
         m = self.model
-        rx, ry, rth = sip.xpos & POS_MASK, sip.ypos & POS_MASK, sip.thpos
+        raw = (sip.xpos & POS_MASK, sip.ypos & POS_MASK, sip.thpos)
         if self._raw is None:
-            self.x = signed15(rx) * m.dist_conv / 1000.0
-            self.y = signed15(ry) * m.dist_conv / 1000.0
-            self.yaw_unwrapped = float(wrap_angle(_nearest(rth, HEADING_UNITS) * m.angle_conv))
+            self.x = signed15(raw[0]) * m.dist_conv / 1000.0
+            self.y = signed15(raw[1]) * m.dist_conv / 1000.0
+            self.yaw_unwrapped = float(wrap_angle(_nearest(raw[2], HEADING_UNITS) * m.angle_conv))
+            self._raw = raw
         else:
-            px, py, pth = self._raw
-            dxu, dyu = _nearest(rx - px, POS_MODULO), _nearest(ry - py, POS_MODULO)
-            dthu = _nearest(rth - pth, HEADING_UNITS)
-            self.max_step_units = max(self.max_step_units, abs(dxu), abs(dyu))
-            dx, dy = dxu * m.dist_conv / 1000.0, dyu * m.dist_conv / 1000.0
-            da = dthu * m.angle_conv
-            self._propagate(dx, dy, da)
-            self.x += dx
-            self.y += dy
-            self.yaw_unwrapped += da
-        self._raw = (rx, ry, rth)
+            steps = self._steps(self._raw, raw)
+            if self._plausible(steps, stamp):
+                self._suspects.clear()
+                self._integrate(*steps)
+                self._raw = raw
+            else:
+                self._reject(raw, steps)
+        self._stamp = stamp
         v = (sip.lvel + sip.rvel) / 2.0 * m.vel_conv / 1000.0 * self.time_scale
         omega = (sip.rvel - sip.lvel) / 2.0 * m.vel_conv * m.diff_conv * self.time_scale
         return Odometry(stamp=stamp, x=self.x, y=self.y, yaw=float(wrap_angle(self.yaw_unwrapped)), v=v,
-                        omega=omega, covariance=self.covariance.copy())
+                        omega=omega, covariance=self.covariance)
+
+    @staticmethod
+    def _steps(a: tuple[int, int, int], b: tuple[int, int, int]) -> tuple[int, int, int]:
+        return _nearest(b[0] - a[0], POS_MODULO), _nearest(b[1] - a[1], POS_MODULO), _nearest(b[2] - a[2], HEADING_UNITS)
+
+    def _plausible(self, steps: tuple[int, int, int], stamp: float) -> bool:
+        m = self.model
+        dt = max(stamp - self._stamp, 0.0) * self.time_scale if self._stamp is not None else 0.0
+        dt = max(dt, 0.1)  # at least one SIP period: stamps of a burst of buffered SIPs are close together
+        slack = self.noise.slack_units
+        max_units = m.max_v * dt * 1000.0 / m.dist_conv + slack
+        max_heading = m.max_omega * dt / m.angle_conv + slack
+        return math.hypot(steps[0], steps[1]) <= max_units and abs(steps[2]) <= max_heading
+
+    def _reject(self, raw: tuple[int, int, int], steps: tuple[int, int, int]) -> None:
+        m = self.model
+        self.rejected_steps += 1
+        log.warning("odometry: implausible step (%.2f m, %.0f deg in one SIP) not integrated; %d so far",
+                    math.hypot(steps[0], steps[1]) * m.dist_conv / 1000.0, math.degrees(steps[2] * m.angle_conv),
+                    self.rejected_steps)
+        if self._suspects and not all(abs(d) <= self.noise.slack_units * 10
+                                      for d in self._steps(self._suspects[-1], raw)):
+            self._suspects.clear()
+        self._suspects.append(raw)
+        if len(self._suspects) >= self.noise.reanchor_after:
+            log.warning("odometry: the controller's pose jumped and stayed (%d SIPs agree): re-anchored, the "
+                        "odometry pose continues from where it was", len(self._suspects))
+            self.reanchors += 1
+            self._raw = raw
+            self._suspects.clear()
+
+    def _integrate(self, dxu: int, dyu: int, dthu: int) -> None:
+        m = self.model
+        self.max_step_units = max(self.max_step_units, abs(dxu), abs(dyu))
+        dx, dy = dxu * m.dist_conv / 1000.0, dyu * m.dist_conv / 1000.0
+        da = dthu * m.angle_conv
+        self._propagate(dx, dy, da)
+        self.x += dx
+        self.y += dy
+        self.yaw_unwrapped += da
 
     def _propagate(self, dx: float, dy: float, da: float) -> None:
         d = math.hypot(dx, dy)
@@ -162,9 +239,15 @@ class OdometryTracker:
         self.distance += abs(d)
         self.rotation += abs(da)
         c, s = math.cos(heading_mid), math.sin(heading_mid)
-        f = np.array([[1.0, 0.0, -d * s], [0.0, 1.0, d * c], [0.0, 0.0, 1.0]])
-        # Noise inputs: (distance, lateral, yaw) errors.
-        g = np.array([[c, -s, -d * s / 2.0], [s, c, d * c / 2.0], [0.0, 0.0, 1.0]])
-        n = self.noise
-        q = np.diag([n.k_d ** 2 * abs(d), n.k_l ** 2 * abs(d), n.k_a ** 2 * abs(da) + n.k_ad ** 2 * abs(d)])
-        self.covariance = f @ self.covariance @ f.T + g @ q @ g.T
+        t = self.track
+        dl, dr = d - da * t / 2.0, d + da * t / 2.0
+        # (distance, rotation) errors of the step -> pose errors
+        g = np.array([[c, -d * s / 2.0], [s, d * c / 2.0], [0.0, 1.0]])
+        sys_ = g @ np.array([[dl / 2.0, dr / 2.0, 0.0], [-dl / t, dr / t, -da]])  # per eps_L, eps_R, eps_T
+        rnd = g @ np.array([[0.5, 0.5], [-1.0 / t, 1.0 / t]])  # per wheel slip nL, nR
+        a = np.eye(6)
+        a[0, 2], a[1, 2] = -d * s, d * c
+        a[:3, 3:] = sys_
+        q = np.diag([abs(dl), abs(dr)]) * self.noise.slip ** 2
+        self._cov = a @ self._cov @ a.T
+        self._cov[:3, :3] += rnd @ q @ rnd.T

@@ -84,17 +84,57 @@ def test_covariance_grows_with_distance_and_turn_not_when_still():
     assert np.all(tr.update(sip(0), 0).covariance == 0)
     still = tr.update(sip(0), 1).covariance
     assert np.all(still == 0)
-    c1 = tr.update(sip(1000), 2).covariance  # 1 m straight along x
-    n = CovarianceModel()
-    assert c1[0, 0] == pytest.approx(n.k_d ** 2 * 1.0)
-    assert c1[2, 2] == pytest.approx(n.k_ad ** 2 * 1.0)
-    assert c1[1, 1] > 0  # lateral error and heading error spread into y
+    c1 = tr.update(sip(1000), 2).covariance  # 1 m straight along x: 1 m on each wheel
+    n, t = CovarianceModel(), tr.track
+    assert t == pytest.approx(0.357, abs=1e-3)  # 2 / diff_conv
+    # distance error (nL + nR + eps_L + eps_R) / 2; rotation error (nR - nL + eps_R - eps_L) / T
+    assert c1[0, 0] == pytest.approx((n.slip ** 2 * 2 + n.scale_sigma ** 2 * 2) / 4)
+    assert c1[2, 2] == pytest.approx((n.slip ** 2 * 2 + n.scale_sigma ** 2 * 2) / t ** 2)
+    assert c1[1, 1] > 0  # the heading error spreads into y
     c2 = tr.update(sip(2000), 3).covariance
     assert c2[0, 0] > c1[0, 0] and c2[1, 1] > c1[1, 1] and c2[2, 2] > c1[2, 2]
-    turn = tr.update(sip(2000, th=1024), 4).covariance  # a quarter turn in place
-    assert turn[2, 2] - c2[2, 2] == pytest.approx(n.k_a ** 2 * 1024 * 0.001534)
-    for c in (c1, c2, turn):
+    for c in (c1, c2):
         assert np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) >= -1e-12)
+
+
+def test_turning_in_place_heading_variance_has_the_track_width_term():
+    """A quarter turn in place: each wheel travels a T / 2; var_yaw = slip^2 a / T (random) + scale_sigma^2
+    a^2 / 2 (wheel scales) + track_sigma^2 a^2 (track width). Two turns: the systematic part grows with
+    the square of the angle (the same track error every time), the random part linearly."""
+    n = CovarianceModel()
+    tr = OdometryTracker(MODELS["p3dx-sh"], n)
+    tr.update(sip(0), 0.0)
+    a = 1024 * 0.001534
+    v1 = tr.update(sip(0, th=1024), 1.0).covariance[2, 2]
+    assert v1 == pytest.approx(n.slip ** 2 * a / tr.track + n.scale_sigma ** 2 * a ** 2 / 2 + n.track_sigma ** 2 * a ** 2)
+    v2 = tr.update(sip(0, th=2048 - 4096), 2.0).covariance[2, 2]
+    a2 = 2 * a
+    assert v2 == pytest.approx(n.slip ** 2 * a2 / tr.track + n.scale_sigma ** 2 * a2 ** 2 / 2 + n.track_sigma ** 2 * a2 ** 2)
+
+
+def test_an_impossible_step_is_rejected_and_the_pose_stays_continuous(caplog):
+    """A SIP whose position passed the checksum but jumped 31.7 m in 0.1 s (a robot at rest) is not
+    integrated; the next good SIP continues from the last good pose."""
+    tr = OdometryTracker(MODELS["p3dx-sh"])
+    good = [tr.update(sip(500), 0.0), tr.update(sip(500), 0.1)]
+    bad = tr.update(sip(500 - 31700), 0.2)
+    after = tr.update(sip(510), 0.3)
+    assert bad.x == good[-1].x == pytest.approx(0.5)
+    assert after.x == pytest.approx(0.51)
+    assert tr.rejected_steps == 1 and tr.reanchors == 0
+    assert "implausible step" in caplog.text
+    assert np.all(np.isfinite(after.covariance)) and after.covariance[1, 1] < 1e-4
+
+
+def test_a_controller_jump_that_stays_is_reanchored():
+    """Three SIPs that agree with each other at a new position (a controller reset) re-anchor the tracker:
+    the odometry pose does not jump, and follows the controller's motion from there."""
+    tr = OdometryTracker(MODELS["p3dx-sh"])
+    tr.update(sip(5000), 0.0)
+    tr.update(sip(5000), 0.1)
+    out = [tr.update(sip(x), 0.2 + 0.1 * k) for k, x in enumerate([0, 0, 0, 100])]
+    assert tr.rejected_steps == 3 and tr.reanchors == 1
+    assert [round(o.x, 3) for o in out] == [5.0, 5.0, 5.0, 5.1]
 
 
 def test_unknown_subclass_names_the_fix():
