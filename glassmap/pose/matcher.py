@@ -318,8 +318,7 @@ class CorrelativeMatcher:
         Gaussian part of the field). On an axis where that is wider than the cell, the lattice moments
         already hold the spread, and the axis is scaled down to that of a uniform distribution over the
         cell (step^2 / 12); where the score does not curve down (flat, or not a peak at this scale) the
-        whole cell is uniform. (A moment of pi sampled at 5^3 points in the cell was off by up to 50 %
-        against 31^3 points: a spread of a few mm against 1 cm samples.)"""
+        whole cell is uniform (docs/pose.md: why not a sampled moment)."""
         size = np.array([fld.resolution, fld.resolution, step])
         uniform = size ** 2 / 12.0
         h = size / 5
