@@ -43,7 +43,7 @@ class DemoOptions:
     registration: str | None = None  # None: keep config.mapping's
     window: int | None = None
     progress: bool = True
-    laser_link_loss_at: float | None = None  # emulated s: pull the laser cable once (tests)
+    laser_link_loss_at: float | None = None  # emulated s after the first scan: pull the laser cable once (tests)
     config: RuntimeConfig | None = None  # base settings (from --config and flags); demo fields override
 
 
@@ -165,14 +165,22 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
 
         driver = route_driver(waypoints, opts.speed, opts.max_v, opts.max_omega, progress)
         rt = Runtime(cfg, pioneer_options={"time_scale": opts.speed}, driver=driver, export_stem="glass_map")
+        cable_pull = None
         if opts.laser_link_loss_at is not None:
-            asyncio.get_running_loop().call_later(opts.laser_link_loss_at / opts.speed,
-                                                  lambda: asyncio.ensure_future(devices.command("laser-disconnect")))
+            async def pull_laser_cable() -> None:  # counted from the first processed scan, not from start-up
+                while rt.latest is None:
+                    await asyncio.sleep(0.02)
+                await asyncio.sleep(opts.laser_link_loss_at / opts.speed)
+                await devices.command("laser-disconnect")
+
+            cable_pull = asyncio.create_task(pull_laser_cable())
         wall_limit = opts.duration / opts.speed if opts.duration is not None else None
         try:
             label = f"{opts.duration:g} s (emulated)" if opts.duration is not None else None
             summary = await rt.run(duration=wall_limit, duration_label=label)
         finally:
+            if cable_pull is not None:
+                cable_pull.cancel()
             if bar is not None:
                 bar.close()
     finally:

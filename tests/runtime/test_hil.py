@@ -147,8 +147,8 @@ def test_replay_through_the_drivers_gives_the_same_maps(demo):
 
 
 def test_laser_link_pulled_mid_run_reconnects_and_recording_continues(tmp_path):
-    res = asyncio.run(run_demo(DemoOptions(speed=2.0, duration=6.0, out_dir=str(tmp_path), progress=False,
-                                           laser_link_loss_at=2.5)))
+    res = asyncio.run(run_demo(DemoOptions(speed=2.0, duration=8.0, out_dir=str(tmp_path), progress=False,
+                                           laser_link_loss_at=2.0)))
     assert res.device_report["laser_disconnects"] == 1
     assert res.summary.laser_reconnects >= 1
     stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
