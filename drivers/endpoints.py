@@ -9,20 +9,29 @@ from __future__ import annotations
 import asyncio
 import os
 import tempfile
+import termios
 import tty
 from collections.abc import Awaitable, Callable
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
 
 
+_SPEED_CONST = {b: getattr(termios, f"B{b}") for b in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200,
+                                                      230400, 460800, 500000, 576000, 921600)}
+_SPEED_BAUD = {c: b for b, c in _SPEED_CONST.items()}
+
+
 class PtyEndpoint:
     """A pseudo-terminal pair in raw mode; the host opens ``path`` (a stable symlink) as a serial port.
 
     ``hangup()`` closes the current pair (the host sees the link drop) and ``reopen()`` makes a new pair
-    behind the same ``path``, like a USB device re-enumerating.
+    behind the same ``path``, like a USB device re-enumerating. ``baud``: the serial speed the host's end
+    starts at (a pty carries bytes at any speed; :meth:`host_baud` reads what the host set, for devices
+    that model a speed mismatch).
     """
 
-    def __init__(self, link_dir: str | None = None, name: str = "tty") -> None:
+    def __init__(self, link_dir: str | None = None, name: str = "tty", baud: int | None = None) -> None:
+        self._baud = baud
         self._own_dir = link_dir is None
         self._dir = link_dir or tempfile.mkdtemp(prefix="glassmap-pty-")
         self.path = os.path.join(self._dir, name)
@@ -34,6 +43,10 @@ class PtyEndpoint:
         self._master, self._slave = os.openpty()
         tty.setraw(self._master)
         tty.setraw(self._slave)
+        if self._baud is not None:
+            attrs = termios.tcgetattr(self._slave)
+            attrs[4] = attrs[5] = _SPEED_CONST[self._baud]
+            termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
         tmp = self.path + ".new"
         if os.path.lexists(tmp):
             os.unlink(tmp)
@@ -52,6 +65,15 @@ class PtyEndpoint:
         )
         self._writer = asyncio.StreamWriter(w_transport, w_protocol, reader, loop)
         return reader, self._writer
+
+    def host_baud(self) -> int | None:
+        """The output speed (baud) the host set on its end of the pty; None when closed or not a standard speed."""
+        if self._master < 0:
+            return None
+        try:
+            return _SPEED_BAUD.get(termios.tcgetattr(self._master)[5])
+        except (termios.error, OSError):
+            return None
 
     def hangup(self) -> None:
         """Close the pty pair: the host's reads fail and its writes go nowhere."""

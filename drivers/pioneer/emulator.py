@@ -6,9 +6,15 @@ watchdog hears nothing for 2 s. Its SIPs report the model's ``odom_pose`` (the c
 reckoning, with the simulator's odometry error when the model has one).
 
 Behaviour presets (:class:`EmulatorBehaviour`):
-- ``real_robot=True`` (default): 15-bit positions, SIP type 0x33 while moving, motors (and sonar) disabled
-  until ENABLE (SONAR), watchdog stop after 2 s of silence (motion resumes when packets return), partial
-  sonar sets (a few new readings per SIP), ENCODER packets on request.
+- ``real_robot=True`` (default): 15-bit positions, SIP type 0x33 while moving, motors disabled until ENABLE,
+  sonar firing from OPEN as ARCOS does (SONAR 0 stops it), watchdog stop after 2 s of silence (motion
+  resumes when packets return), partial sonar sets (a few new readings per SIP), ENCODER packets on request.
+
+The CONFIG packet carries every field the reference client reads (:meth:`PioneerEmulator.config_packet`);
+VEL and RVEL are capped at its current limits (TransVelMax, RotVelMax; SETV/SETRV change them up to the
+Top values). The serial speed starts at 9600 baud; HOSTBAUD switches it and CLOSE returns it to 9600. Over a
+pty the emulator compares its speed with the one the host set on its end (termios): while they differ the
+bytes are lost both ways, as on a real line.
 - ``real_robot=False``: the known simulator deviations: 0x32 always, 16-bit positions, motors and sonar
   enabled at start, no ENCODER packets, the watchdog only logs, all 16 sonar readings in every SIP.
 
@@ -59,7 +65,7 @@ class EmulatorBehaviour:
     position_bits: int = 15
     moving_type: bool = True  # SIP ID 0x33 while the robot moves
     motors_start_enabled: bool = False
-    sonar_start_enabled: bool = False
+    sonar_start_enabled: bool = True  # ARCOS fires the sonar from OPEN
     encoder_packets: bool = True
     watchdog_stops: bool = True
     sonar_per_sip: int | None = 4  # new sonar readings per SIP; None = all 16
@@ -120,12 +126,16 @@ class EmulatorStats:
     link_losses: int = 0
     watchdog_trips: int = 0
     faults_injected: int = 0
+    baud_mismatch_bytes: int = 0  # bytes lost because host and emulator ran at different serial speeds
 
 
 _SESSION_CLOSED, _SESSION_SYNC1, _SESSION_SYNC2, _SESSION_READY, _SESSION_OPEN = range(5)
 
 SONAR_COUNT = 16
 SONAR_NO_ECHO_MM = 5000
+SONAR_ARRAYS = 2  # array 0: front ring (sonar 0-7), array 1: rear ring (8-15)
+HOSTBAUD_SPEEDS = (9600, 19200, 38400, 57600, 115200)  # HOSTBAUD code -> baud
+POWER_UP_BAUD = 9600
 
 
 class PioneerEmulator:
@@ -158,8 +168,12 @@ class PioneerEmulator:
         self.sonar_fn = sonar_fn
         self.stats = EmulatorStats()
         self.received: list[ReceivedCommand] = []
+        # Byte taps ``f(direction, monotonic time, data)``: "tx" host -> robot, "rx" robot -> host (a
+        # drivers.capture.CaptureRecorder records a session from the robot's side).
+        self.taps: list[Callable[[str, float, bytes], None]] = []
         self.stall_bumpers = 0  # raw STALL_BUMPERS bits to report (tests set this)
-        self.hostbaud: int | None = None
+        self.hostbaud: int | None = None  # last HOSTBAUD code received
+        self.line_baud = POWER_UP_BAUD  # the controller's serial speed (a pty host must match it)
 
         self._rng = random.Random(self.faults.seed)
         self._t0 = time.monotonic()
@@ -167,6 +181,7 @@ class PioneerEmulator:
         self._still_open_pending = self.faults.still_open
         self.motors_enabled = self.behaviour.motors_start_enabled
         self.sonar_enabled = self.behaviour.sonar_start_enabled
+        self.sonar_arrays = (1 << SONAR_ARRAYS) - 1  # bit i: array i fires while the sonar is on
         self.estopped = False
         self._target = (0.0, 0.0)  # commanded (v m/s, omega rad/s)
         self._heading_goal: float | None = None  # rad, odom frame (HEAD/DHEAD mode)
@@ -208,7 +223,7 @@ class PioneerEmulator:
     async def serve_pty(self) -> str:
         """Serve on a new pseudo-terminal; returns the host's URL ``serial://PATH?baud=9600``."""
         self._pty_dir = tempfile.mkdtemp(prefix="glassmap-pioneer-")
-        self._endpoint = PtyEndpoint(self._pty_dir, name="pioneer")
+        self._endpoint = PtyEndpoint(self._pty_dir, name="pioneer", baud=POWER_UP_BAUD)
         await self._attach_pty()
         self._start_ticking()
         return f"serial://{self._endpoint.path}?baud=9600"
@@ -308,6 +323,11 @@ class PioneerEmulator:
                 data = await reader.read(4096)
                 if not data:
                     break
+                for tap in self.taps:
+                    tap("tx", time.monotonic(), data)
+                if not self._speeds_match():
+                    self.stats.baud_mismatch_bytes += len(data)
+                    continue
                 for pkt in parser.feed(data):
                     self._handle(pkt.pid, pkt.payload)
                 self.stats.bad_packets_received = parser.stats.bad_checksum + parser.stats.bad_length
@@ -321,9 +341,17 @@ class PioneerEmulator:
             except Exception:  # already closed (link loss)
                 pass
 
+    def _speeds_match(self) -> bool:
+        """False when a pty host runs its end at another serial speed than the controller."""
+        host = self._endpoint.host_baud() if self._endpoint is not None else None
+        return host is None or host == self.line_baud
+
     def _write(self, data: bytes) -> None:
         w = self._writer
         if w is None or w.is_closing():
+            return
+        if not self._speeds_match():
+            self.stats.baud_mismatch_bytes += len(data)
             return
         if w.transport.get_write_buffer_size() > 1 << 16:  # nobody reading: bytes are lost, as on a wire
             return
@@ -331,6 +359,9 @@ class PioneerEmulator:
             w.write(data)
         except (ConnectionError, OSError, RuntimeError):
             self._writer = None
+            return
+        for tap in self.taps:
+            tap("rx", time.monotonic(), data)
 
     def _send(self, packet: bytes) -> None:
         f = self.faults
@@ -378,6 +409,7 @@ class PioneerEmulator:
             self._open_session()
         elif pid == Cmd.CLOSE:
             self._session = _SESSION_CLOSED
+            self.line_baud = POWER_UP_BAUD
         # anything else before OPEN is ignored, as ARCOS does
 
     def _open_session(self) -> None:
@@ -385,6 +417,10 @@ class PioneerEmulator:
         self._open_since = self.now()
         self.motors_enabled = self.behaviour.motors_start_enabled
         self.sonar_enabled = self.behaviour.sonar_start_enabled
+        self.sonar_arrays = (1 << SONAR_ARRAYS) - 1
+        cfg = self.config_packet()
+        self._max_v = min(cfg.transvel_max / 1000.0, self.model.max_v)
+        self._max_omega = min(math.radians(cfg.rotvel_max), self.model.max_omega)
         self._target = (0.0, 0.0)
         self._heading_goal = None
         self._encoder_mode = 0
@@ -401,6 +437,7 @@ class PioneerEmulator:
         m = self.model
         if cmd == Cmd.CLOSE:
             self._close_session()
+            self.line_baud = POWER_UP_BAUD
         elif cmd == Cmd.ENABLE:
             self.motors_enabled = bool(arg)
             if not self.motors_enabled:
@@ -441,21 +478,42 @@ class PioneerEmulator:
         elif cmd == Cmd.SETO:
             self._origin = np.asarray(self.robot.odom_pose, dtype=float).copy()
         elif cmd == Cmd.CONFIG:
-            self._send(encode_config(self._config()))
+            self._send(encode_config(self.config_packet()))
         elif cmd == Cmd.ENCODER and arg is not None and self.behaviour.encoder_packets:
             self._encoder_mode = arg
         elif cmd == Cmd.SONAR and arg is not None:
-            self.sonar_enabled = bool(arg)
+            # ARCOS: bit 0 on/off; bits 1-4 pick arrays (none = all arrays).
+            every = (1 << SONAR_ARRAYS) - 1
+            mask = (arg >> 1) & every or every
+            if arg & 1:
+                self.sonar_arrays = mask if not self.sonar_enabled else self.sonar_arrays | mask
+            else:
+                self.sonar_arrays &= ~mask
+            self.sonar_enabled = self.sonar_arrays != 0
+            if not self.sonar_enabled:
+                self.sonar_arrays = every
         elif cmd == Cmd.HOSTBAUD and arg is not None:
             self.hostbaud = arg
+            if 0 <= arg < len(HOSTBAUD_SPEEDS) and self.config_packet().reset_baud == 2:
+                self.line_baud = HOSTBAUD_SPEEDS[arg]
         # PULSE, OPEN, SETA, SETRA and unknown commands: nothing to do (acceleration is the model's)
 
-    def _config(self) -> ConfigPacket:
-        return ConfigPacket("Pioneer", self.identity.subclass, "EMU0001", four_mots=0, rotvel_top=500,
-                            transvel_top=2200, rotaccel_top=300, transaccel_top=2000, pwm_max=1000,
-                            name=self.identity.name, sip_cycle=int(round(self.sip_period * 1000)), host_baud=0,
-                            aux_baud=0, gripper=0, front_sonar=1, rear_sonar=1, low_battery=110, revcount=16570,
-                            watchdog=int(round(self.watchdog * 1000)))
+    def config_packet(self) -> ConfigPacket:
+        """The CONFIG packet: every field ARIA reads, with P3-DX values (ARCOS units: mm, deg, ms, 0.1 V)."""
+        return ConfigPacket(
+            "Pioneer", self.identity.subclass, "EMU0001", four_mots=0, rotvel_top=500, transvel_top=2200,
+            rotaccel_top=300, transaccel_top=2000, pwm_max=1000, name=self.identity.name,
+            sip_cycle=int(round(self.sip_period * 1000)), host_baud=0, aux_baud=0, gripper=0, front_sonar=1,
+            rear_sonar=1, low_battery=110, revcount=16570, watchdog=int(round(self.watchdog * 1000)),
+            normal_mpacs=0, stall_val=255, stall_count=10, joy_vel=300, joy_rotvel=50, rotvel_max=300,
+            transvel_max=1500, rot_accel=200, rot_decel=200, rot_kp=40, rot_kv=20, rot_ki=0, trans_accel=300,
+            trans_decel=300, trans_kp=40, trans_kv=30, trans_ki=0, front_bumps=5, rear_bumps=5, has_charger=0,
+            sonar_cycle=40, reset_baud=2, gyro_type=0, drift_factor=0, aux2_baud=0, aux3_baud=0, ticks_mm=128,
+            shutdown_voltage=105, firmware_version="glassmap emulated ARCOS", gyro_cw=0, gyro_ccw=0,
+            kinematics_delay=0, latvel_top=0, lataccel_top=0, latvel_max=0, lat_accel=0, lat_decel=0,
+            charge_threshold=0, pdb_port=0, gyro_rate_limit=0, high_temperature_shutdown=0, power_bits=0,
+            battery_type=0, state_of_charge_low=0, state_of_charge_shutdown=0, bootloader_version="",
+            config_flags=0, gyro_fw_version=0)
 
     # -- the controller's cycle ------------------------------------------------------------------------
     def _start_ticking(self) -> None:
@@ -530,7 +588,7 @@ class PioneerEmulator:
         wl, wr = self.robot.wheel_speeds
         v, w = self.robot.velocity
         moving = abs(v) > 1e-3 or abs(w) > 1e-3
-        flags = (1 if self.motors_enabled else 0) | ((0b0011 << 1) if self.sonar_enabled else 0) | (
+        flags = (1 if self.motors_enabled else 0) | ((self.sonar_arrays << 1) if self.sonar_enabled else 0) | (
             0x20 if self.estopped else 0)
         goal = th if self._heading_goal is None else self._heading_goal
         control = int(round(goal / m.angle_conv)) % 4096
@@ -546,9 +604,12 @@ class PioneerEmulator:
     def _sonar_readings(self) -> tuple[tuple[int, int], ...]:
         if not self.sonar_enabled:
             return ()
-        n = self.behaviour.sonar_per_sip or SONAR_COUNT
-        idx = [(self._sonar_next + k) % SONAR_COUNT for k in range(min(n, SONAR_COUNT))]
-        self._sonar_next = (self._sonar_next + len(idx)) % SONAR_COUNT
+        per_array = SONAR_COUNT // SONAR_ARRAYS
+        firing = [i for i in range(SONAR_COUNT) if self.sonar_arrays >> (i // per_array) & 1]
+        n = min(self.behaviour.sonar_per_sip or SONAR_COUNT, len(firing))
+        start = next((k for k, i in enumerate(firing) if i >= self._sonar_next), 0)
+        idx = [firing[(start + k) % len(firing)] for k in range(n)]
+        self._sonar_next = (idx[-1] + 1) % SONAR_COUNT if idx else 0
         pose = self._reported_pose()
         out = []
         for i in idx:

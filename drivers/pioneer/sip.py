@@ -4,7 +4,8 @@
   (GRIP, ANPORT, ANALOG, DIGIN, DIGOUT, BATTERYX10, CHARGESTATE, ROTVEL, FAULTFLAGS) parsed field by field
   while bytes remain; anything after that is kept raw in ``extra``.
 - SYNC2 reply (ID 2): robot name, class, subclass (NUL-terminated strings).
-- CONFIG (0x20): the ARIA layout up to the watchdog time; the rest kept raw in ``extra``.
+- CONFIG (0x20): every field of the ARIA layout; fields after the watchdog are optional (older
+  controllers stop early).
 - ENCODER (0x90): left and right raw encoder counts (int32 LE).
 
 Values are kept in the robot's raw units here; :mod:`drivers.pioneer.odometry` converts to SI.
@@ -171,10 +172,14 @@ def encode_sync2(reply: SyncReply) -> bytes:
 
 @dataclass(frozen=True)
 class ConfigPacket:
-    """CONFIG packet (0x20), ARIA field order up to the watchdog; later fields kept raw in ``extra``.
+    """CONFIG packet (0x20), every field in the order the reference client (ARIA) reads them.
 
-    Velocities mm/s and deg/s, accelerations mm/s^2 and deg/s^2, sip_cycle ms, watchdog ms, low_battery 0.1 V.
-    host_baud/aux_baud: HOSTBAUD codes (0=9600 .. 4=115200).
+    Strings are NUL-terminated. Velocities mm/s and deg/s, accelerations mm/s^2 and deg/s^2, sip_cycle and
+    sonar_cycle ms, watchdog ms, low_battery and shutdown_voltage 0.1 V. host_baud/aux*_baud: HOSTBAUD codes
+    (0=9600 .. 4=115200). rotvel_max/transvel_max (and the accelerations after them) are the *current*
+    limits a client starts from; the *_top fields are the hardware ceilings. reset_baud == 2: the client
+    may switch the serial speed with HOSTBAUD. Fields after ``watchdog`` are None when the packet ends
+    before them (older controllers send less); bytes after the last field are kept raw in ``extra``.
     """
 
     robot_type: str
@@ -196,47 +201,120 @@ class ConfigPacket:
     low_battery: int = 0
     revcount: int = 0
     watchdog: int = 2000
+    normal_mpacs: int | None = None
+    stall_val: int | None = None
+    stall_count: int | None = None
+    joy_vel: int | None = None
+    joy_rotvel: int | None = None
+    rotvel_max: int | None = None
+    transvel_max: int | None = None
+    rot_accel: int | None = None
+    rot_decel: int | None = None
+    rot_kp: int | None = None
+    rot_kv: int | None = None
+    rot_ki: int | None = None
+    trans_accel: int | None = None
+    trans_decel: int | None = None
+    trans_kp: int | None = None
+    trans_kv: int | None = None
+    trans_ki: int | None = None
+    front_bumps: int | None = None
+    rear_bumps: int | None = None
+    has_charger: int | None = None
+    sonar_cycle: int | None = None
+    reset_baud: int | None = None
+    gyro_type: int | None = None
+    drift_factor: int | None = None
+    aux2_baud: int | None = None
+    aux3_baud: int | None = None
+    ticks_mm: int | None = None
+    shutdown_voltage: int | None = None
+    firmware_version: str | None = None
+    gyro_cw: int | None = None
+    gyro_ccw: int | None = None
+    kinematics_delay: int | None = None
+    latvel_top: int | None = None
+    lataccel_top: int | None = None
+    latvel_max: int | None = None
+    lat_accel: int | None = None
+    lat_decel: int | None = None
+    charge_threshold: int | None = None
+    pdb_port: int | None = None
+    gyro_rate_limit: int | None = None
+    high_temperature_shutdown: int | None = None
+    power_bits: int | None = None
+    battery_type: int | None = None
+    state_of_charge_low: int | None = None
+    state_of_charge_shutdown: int | None = None
+    bootloader_version: str | None = None
+    config_flags: int | None = None
+    gyro_fw_version: int | None = None
     extra: bytes = b""
 
 
-_CONFIG_NUMS: tuple[tuple[str, str], ...] = (
+_STR = "str"
+# Every CONFIG field after the three leading strings, in wire order: (field name, struct format or _STR).
+_CONFIG_LAYOUT: tuple[tuple[str, str], ...] = (
     ("four_mots", "<B"), ("rotvel_top", "<H"), ("transvel_top", "<H"), ("rotaccel_top", "<H"),
-    ("transaccel_top", "<H"), ("pwm_max", "<H"),
-)
-_CONFIG_NUMS2: tuple[tuple[str, str], ...] = (
+    ("transaccel_top", "<H"), ("pwm_max", "<H"), ("name", _STR),
     ("sip_cycle", "<B"), ("host_baud", "<B"), ("aux_baud", "<B"), ("gripper", "<H"), ("front_sonar", "<H"),
     ("rear_sonar", "<B"), ("low_battery", "<H"), ("revcount", "<H"), ("watchdog", "<H"),
+    ("normal_mpacs", "<B"), ("stall_val", "<H"), ("stall_count", "<H"), ("joy_vel", "<H"),
+    ("joy_rotvel", "<H"), ("rotvel_max", "<H"), ("transvel_max", "<H"), ("rot_accel", "<H"),
+    ("rot_decel", "<H"), ("rot_kp", "<H"), ("rot_kv", "<H"), ("rot_ki", "<H"), ("trans_accel", "<H"),
+    ("trans_decel", "<H"), ("trans_kp", "<H"), ("trans_kv", "<H"), ("trans_ki", "<H"),
+    ("front_bumps", "<B"), ("rear_bumps", "<B"), ("has_charger", "<B"), ("sonar_cycle", "<B"),
+    ("reset_baud", "<B"), ("gyro_type", "<B"), ("drift_factor", "<h"), ("aux2_baud", "<B"),
+    ("aux3_baud", "<B"), ("ticks_mm", "<H"), ("shutdown_voltage", "<H"), ("firmware_version", _STR),
+    ("gyro_cw", "<H"), ("gyro_ccw", "<H"), ("kinematics_delay", "<B"), ("latvel_top", "<H"),
+    ("lataccel_top", "<H"), ("latvel_max", "<H"), ("lat_accel", "<H"), ("lat_decel", "<H"),
+    ("charge_threshold", "<H"), ("pdb_port", "<B"), ("gyro_rate_limit", "<H"),
+    ("high_temperature_shutdown", "<b"), ("power_bits", "<H"), ("battery_type", "<B"),
+    ("state_of_charge_low", "<H"), ("state_of_charge_shutdown", "<H"), ("bootloader_version", _STR),
+    ("config_flags", "<I"), ("gyro_fw_version", "<h"),
 )
+_CONFIG_REQUIRED = 1 + [name for name, _ in _CONFIG_LAYOUT].index("watchdog")
 
 
 def decode_config(payload: bytes) -> ConfigPacket:
-    """Decode a CONFIG payload. Raises DecodeError when it ends before the watchdog field."""
+    """Decode a CONFIG payload. Raises DecodeError when it ends before the watchdog field.
+
+    Fields after the watchdog are read while whole fields remain; the rest stay None.
+    """
     (rtype, sub, serial), off = _split_strings(payload, 3, "CONFIG packet")
     vals: dict[str, object] = {}
-    for name, fmt in _CONFIG_NUMS:
-        if len(payload) - off < struct.calcsize(fmt):
-            raise DecodeError(f"CONFIG packet ends before field {name} ({len(payload)} bytes)")
+    for k, (name, fmt) in enumerate(_CONFIG_LAYOUT):
+        if fmt == _STR:
+            end = payload.find(b"\x00", off)
+            if end < 0:
+                if k < _CONFIG_REQUIRED:
+                    raise DecodeError(f"CONFIG packet: string field {name} is not NUL-terminated")
+                break
+            vals[name] = payload[off:end].decode("latin-1")
+            off = end + 1
+            continue
+        size = struct.calcsize(fmt)
+        if len(payload) - off < size:
+            if k < _CONFIG_REQUIRED:
+                raise DecodeError(f"CONFIG packet ends before field {name} ({len(payload)} bytes)")
+            break
         (vals[name],) = struct.unpack_from(fmt, payload, off)
-        off += struct.calcsize(fmt)
-    (vals["name"],), n = _split_strings(payload[off:], 1, "CONFIG packet name")
-    off += n
-    for name, fmt in _CONFIG_NUMS2:
-        if len(payload) - off < struct.calcsize(fmt):
-            raise DecodeError(f"CONFIG packet ends before field {name} ({len(payload)} bytes)")
-        (vals[name],) = struct.unpack_from(fmt, payload, off)
-        off += struct.calcsize(fmt)
+        off += size
     return ConfigPacket(rtype, sub, serial, extra=bytes(payload[off:]), **vals)  # type: ignore[arg-type]
 
 
 def encode_config(cfg: ConfigPacket) -> bytes:
+    """Framed CONFIG packet (emulator side): every field up to the last one that is not None."""
     p = bytearray()
     for s in (cfg.robot_type, cfg.subtype, cfg.serial):
         p += s.encode("latin-1") + b"\x00"
-    for name, fmt in _CONFIG_NUMS:
-        p += struct.pack(fmt, getattr(cfg, name))
-    p += cfg.name.encode("latin-1") + b"\x00"
-    for name, fmt in _CONFIG_NUMS2:
-        p += struct.pack(fmt, getattr(cfg, name))
+    values = [getattr(cfg, name) for name, _ in _CONFIG_LAYOUT]
+    last = max((k for k, v in enumerate(values) if v is not None), default=-1)
+    for (name, fmt), value in zip(_CONFIG_LAYOUT[: last + 1], values):
+        if fmt == _STR:
+            p += (value or "").encode("latin-1") + b"\x00"
+        else:
+            p += struct.pack(fmt, value or 0)
     p += cfg.extra
     return build_packet(PacketType.CONFIG, bytes(p))
 
@@ -287,3 +365,4 @@ def decode_packet(packet: Packet) -> ServerMessage:
 
 SIP_TAIL_FIELDS = tuple(name for name, _ in _SIP_TAIL)
 assert set(SIP_TAIL_FIELDS) <= {f.name for f in fields(StandardSIP)}
+assert {name for name, _ in _CONFIG_LAYOUT} <= {f.name for f in fields(ConfigPacket)}

@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.pioneer.emulator import PioneerEmulator
 from drivers.pioneer.errors import DecodeError
 from drivers.pioneer.packets import Packet, PacketParser, build_packet
 from drivers.pioneer.sip import (SIP_TAIL_FIELDS, ConfigPacket, EncoderPacket, StandardSIP, SyncReply,
@@ -77,13 +78,43 @@ def test_sync2_reply_three_strings():
         decode_sync2(b"Robbie\x00Pioneer")
 
 
-def test_config_round_trip_and_truncation():
+def test_short_config_ending_at_the_watchdog_still_decodes():
     cfg = ConfigPacket("Pioneer", "p3dx-sh", "SN42", 0, 500, 2200, 300, 2000, 1000, "Robbie", 100, 0, 0, 0, 1, 1,
-                       110, 16570, 2000, extra=b"\x01\x02")
+                       110, 16570, 2000)
     (p,) = PacketParser().feed(encode_config(cfg))
-    assert p.pid == 0x20 and decode_packet(p) == cfg
+    got = decode_packet(p)
+    assert p.pid == 0x20 and got == cfg
+    assert got.transvel_max is None and got.extra == b""
     with pytest.raises(DecodeError, match="watchdog"):
-        decode_config(p.payload[:-4])
+        decode_config(p.payload[:-1])
+
+
+def test_full_config_fields_sit_where_aria_reads_them():
+    """Hand-packed in the reference client's order: the current limits follow the watchdog, NormalMPacs and
+    four u16 (stall value/count, joystick speeds); ResetBaud is the fifth u8 after the sixteen u16 of
+    limits, accelerations and PID gains."""
+    head = b"Pioneer\x00p3dx-sh\x00SN42\x00" + struct.pack("<B5H", 0, 500, 2200, 300, 2000, 1000) + b"Robbie\x00"
+    head += struct.pack("<3B2HB3H", 100, 0, 0, 0, 1, 1, 110, 16570, 2000)
+    body = struct.pack("<B4H", 0, 255, 10, 300, 50)
+    body += struct.pack("<12H", 300, 1500, 200, 200, 40, 20, 0, 300, 300, 40, 30, 0)
+    body += struct.pack("<6B", 5, 5, 0, 40, 2, 0) + struct.pack("<hBBHH", -3, 0, 0, 128, 105) + b"fw 1\x00"
+    body += struct.pack("<HHB6HBHb", 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, -5)
+    body += struct.pack("<HBHH", 0, 0, 0, 0) + b"boot\x00" + struct.pack("<Ih", 7, -1)
+    cfg = decode_config(head + body)
+    assert (cfg.watchdog, cfg.normal_mpacs, cfg.stall_val, cfg.joy_rotvel) == (2000, 0, 255, 50)
+    assert (cfg.rotvel_max, cfg.transvel_max, cfg.rot_accel, cfg.trans_accel, cfg.trans_ki) == (300, 1500, 200, 300, 0)
+    assert (cfg.front_bumps, cfg.sonar_cycle, cfg.reset_baud, cfg.drift_factor, cfg.ticks_mm) == (5, 40, 2, -3, 128)
+    assert cfg.firmware_version == "fw 1" and cfg.high_temperature_shutdown == -5
+    assert (cfg.bootloader_version, cfg.config_flags, cfg.gyro_fw_version, cfg.extra) == ("boot", 7, -1, b"")
+    (p,) = PacketParser().feed(encode_config(cfg))
+    assert p.payload == head + body and decode_packet(p) == cfg
+
+
+def test_config_stopping_mid_way_leaves_the_rest_unset():
+    cfg = PioneerEmulator().config_packet()
+    (p,) = PacketParser().feed(encode_config(cfg))
+    cut = decode_config(p.payload[:-20])
+    assert cut.transvel_max == 1500 and cut.bootloader_version is None and cut.gyro_fw_version is None
 
 
 def test_encoder_packet():
