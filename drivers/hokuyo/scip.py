@@ -304,7 +304,15 @@ def _find_echo(line: bytes, strict: bool) -> tuple[int, re.Match | None] | None:
     """Locate an echo in ``line``: (garbage prefix length, match of a known command or None=generic)."""
     m = _KNOWN_ECHO_END_RE.search(line)  # leftmost start of a known echo running to the end of the line
     if m is not None:
-        return m.start(), _KNOWN_ECHO_RE.fullmatch(line, m.start())
+        start = m.start()
+        # A partial echo left without its line end (``MS...;``) glues onto the next reply's echo, which
+        # then reads as its string field: resynchronise at the last known echo that forms the string.
+        while (string := _KNOWN_ECHO_RE.fullmatch(line, start)) is not None and string.group("string"):
+            nxt = _KNOWN_ECHO_RE.fullmatch(line, string.start("string"))
+            if nxt is None:
+                break
+            start = string.start("string")
+        return start, _KNOWN_ECHO_RE.fullmatch(line, start)
     if not strict and len(line) <= _MAX_ECHO_LEN + 8 and _GENERIC_ECHO_RE.fullmatch(line):
         return 0, None
     return None
@@ -409,6 +417,8 @@ class ScipParser:
             if m is None or not (m.group("stream") or m.group("single")) or not _is_status(status) \
                     or status[:2] not in (b"99", b"00"):
                 break
+            if m.group("string") and _KNOWN_ECHO_RE.fullmatch(echo_raw, m.start("string")):
+                break  # an echo glued to a partial one: the state machine resynchronises
             p = whole[i2 + 1:e]  # payload lines with their LFs: timestamp, full data lines, last line
             pl = ends[2:] - (i2 + 1)  # LF of each payload line, in p
             if pl.size < 2:

@@ -326,3 +326,26 @@ def test_whole_messages_and_single_bytes_decode_alike(cases, data):
     whole = feed_all(bytes(stream))
     single = feed_all(bytes(stream), [1] * len(stream))
     assert _summary(whole) == _summary(single)
+
+
+@pytest.mark.parametrize("next_echo", [b"MS0540054001000", b"VV", b"TM0"])
+def test_partial_echo_without_line_end_resynchronises_at_the_next_echo(next_echo):
+    """A link cut mid-echo leaves ``MS0540054001000;`` with no LF: the next reply's echo must not be read
+    as its string field."""
+    p = ScipParser()
+    assert p.feed(b"MS0540054001000;") == []
+    if next_echo.startswith(b"MS"):
+        reply = encode_reply(next_echo, "99", encode_scan_payload("MS", 1234, np.arange(100, 101)))
+    else:
+        reply = encode_reply(next_echo, "00")
+    out = p.feed(reply)
+    assert isinstance(out[0], GarbageData) and out[0].nbytes == len(b"MS0540054001000;")
+    assert len(out) == 2 and not isinstance(out[1], Exception)
+    assert out[1].echo.raw == next_echo and out[1].echo.string == ""
+    if next_echo.startswith(b"MS"):
+        assert isinstance(out[1], ScanReply) and out[1].timestamp_ms == 1234 and out[1].distances.tolist() == [100]
+
+
+def test_echo_with_an_ordinary_string_keeps_it():
+    out = ScipParser().feed(encode_reply(b"MS0540054001000;scan-7", "00"))
+    assert out[0].echo.string == "scan-7"
