@@ -20,6 +20,7 @@ import asyncio
 import logging
 import math
 import re
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -242,6 +243,9 @@ class HokuyoEmulator:
         self._tm_refuse_until = -1.0
         self._last_rb = -math.inf
         self._qt_to_ignore = self.faults.ignore_qt
+        # Byte taps ``f(direction, monotonic time, data)``: "tx" host -> sensor, "rx" sensor -> host (a
+        # drivers.capture.CaptureRecorder records a session from the sensor's side).
+        self.taps: list[Callable[[str, float, bytes], None]] = []
 
     # -- time ---------------------------------------------------------------------------------------
     def now(self) -> float:
@@ -334,6 +338,8 @@ class HokuyoEmulator:
                 data = await conn.reader.read(4096)
                 if not data:
                     break
+                for tap in self.taps:
+                    tap("tx", time.monotonic(), data)
                 buf += data
                 *lines, rest = re.split(rb"\r\n|\r|\n", bytes(buf))
                 buf = bytearray(rest[-256:])
@@ -374,6 +380,8 @@ class HokuyoEmulator:
             self.stats.overruns += 1  # host not reading: drop, as the sensor would
             return False
         conn.writer.write(conn.pending + data)
+        for tap in self.taps:
+            tap("rx", time.monotonic(), conn.pending + data)
         conn.pending = b""
         return True
 
