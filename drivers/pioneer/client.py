@@ -158,6 +158,16 @@ class PioneerStats:
     odometry_dropped: int = 0
 
 
+def _silence_hint(url: str) -> str:
+    """What to check when the robot never answers, for this kind of link."""
+    if url.startswith("tcp:"):
+        return ("The TCP connection opened but nothing answered: is a Pioneer server (a simulator such as "
+                "AMRISim, or a serial-to-TCP bridge on the robot) listening on that port, and is the bridge's "
+                "serial side connected to the robot and powered on?")
+    return ("Is the robot powered on, the cable in the controller's SERIAL port, the URL right "
+            "(serial speed 9600 after power-up)?")
+
+
 def _serial_url_with_baud(url: str, baud: int | None = None) -> str:
     """Serial URLs without ``baud`` get 9600 (the P3-DX power-up speed); ``baud`` overrides."""
     u = urlparse(url)
@@ -545,8 +555,7 @@ class PioneerClient:
         if not heard_anything:
             raise HandshakeTimeout(
                 f"{self.url}: no answer to SYNC0 after {s.handshake_tries} tries of {s.handshake_timeout:.2f} s. "
-                "Is the robot powered on, the cable in the controller's SERIAL port, the URL right "
-                "(serial speed 9600 after power-up)?")
+                + _silence_hint(transport.url))
         raise HandshakeError(
             f"{self.url}: handshake failed after {s.handshake_tries} tries (the robot answers but the SYNC "
             "sequence never completed; line noise, or another program on the port?)")

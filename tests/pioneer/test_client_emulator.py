@@ -331,3 +331,22 @@ async def test_emulator_obeys_vel2_head_and_seto(emulator_factory):
         n = base.stats.sips
         await eventually(lambda: base.stats.sips > n + 1, what="SIP to anchor on")
         assert (base.latest.x, base.latest.y, base.latest.yaw) == pytest.approx((0.0, 0.0, 0.0), abs=0.002)
+
+
+async def test_silent_tcp_server_gets_a_tcp_hint_not_a_serial_one():
+    import asyncio
+
+    async def silent(reader, writer):
+        await reader.read()  # accept, read, never answer
+        writer.close()
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        with pytest.raises(HandshakeTimeout) as err:
+            await PioneerClient.connect(f"tcp://127.0.0.1:{port}", handshake_tries=2, handshake_timeout=0.1)
+        msg = str(err.value)
+        assert "listening on that port" in msg
+        assert "9600" not in msg and "cable" not in msg and "SERIAL" not in msg
+    finally:
+        server.close()
