@@ -17,6 +17,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable
 
+from drivers.pioneer.motion_guard import ReconnectGuard
 from glassmap.cli_args import add_seed, add_seeds
 
 URL_HELP = ("robot URL: serial:///dev/ttyUSB0 (9600 baud at power-up; ?baud=N to override) or "
@@ -49,6 +50,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      "left/right turn, space stop, x emergency stop, q quit")
     dr.add_argument("--speed", type=float, default=0.2, help="forward speed for scripts, m/s (default 0.2)")
     dr.add_argument("--turn-rate", type=float, default=30.0, help="turn rate for scripts, deg/s (default 30)")
+    dr.add_argument("--continue-after-reconnect", action="store_true", help="after a lost and re-opened "
+                    "link, carry on with the scripted motion (default: stop and report)")
     dr.add_argument("--max-speed", type=float, default=0.5, help="client speed limit, m/s (default 0.5)")
     dr.add_argument("--max-turn-rate", type=float, default=60.0, help="client turn-rate limit, deg/s "
                     "(default 60)")
@@ -177,6 +180,7 @@ def _probe(args: argparse.Namespace) -> int:
 def _drive(args: argparse.Namespace) -> int:
     from drivers.errors import DriverError
     from drivers.pioneer.client import PioneerClient
+    from drivers.pioneer.motion_guard import MotionInterrupted
 
     if args.speed <= 0 or args.turn_rate <= 0:
         return _fail("--speed and --turn-rate must be > 0")
@@ -186,13 +190,18 @@ def _drive(args: argparse.Namespace) -> int:
 
     async def main() -> int:
         async with PioneerClient.connect(args.url, enable_motors=True, settings=settings) as base:
-            if args.teleop:
-                await teleoperate(base)
-            elif args.line is not None:
-                await drive_distance(base, args.line, args.speed)
-            else:
-                await drive_square(base, args.square if args.square is not None else 0.5, args.speed,
-                                   math.radians(args.turn_rate))
+            resume = args.continue_after_reconnect
+            try:
+                if args.teleop:
+                    await teleoperate(base)
+                elif args.line is not None:
+                    await drive_distance(base, args.line, args.speed, resume=resume)
+                else:
+                    await drive_square(base, args.square if args.square is not None else 0.5, args.speed,
+                                       math.radians(args.turn_rate), resume=resume)
+            except MotionInterrupted:
+                await base.stop()
+                raise
             await base.stop()
             odom = base.latest
             assert odom is not None
@@ -208,11 +217,13 @@ def _drive(args: argparse.Namespace) -> int:
 
 
 async def drive_distance(base, distance: float, speed: float, *, decel: float = 0.25,
-                         timeout: float | None = None) -> None:
+                         timeout: float | None = None, resume: bool = False) -> None:
     """Drive ``distance`` m straight (negative: backwards) at up to ``speed`` m/s, holding the heading.
 
     Slows down so that a deceleration of ``decel`` m/s^2 (below the P3-DX default 0.3) stops it on the spot.
+    A reconnect on the way raises MotionInterrupted unless ``resume``.
     """
+    guard = ReconnectGuard(base, resume, f"drive of {distance:+.2f} m")
     start = base.latest
     goal = abs(distance)
     sign = 1.0 if distance >= 0 else -1.0
@@ -220,6 +231,7 @@ async def drive_distance(base, distance: float, speed: float, *, decel: float = 
     t_end = time.monotonic() + limit
     async with contextlib.aclosing(base.odometry()) as poses:
         async for odom in poses:
+            guard.check()
             done = math.hypot(odom.x - start.x, odom.y - start.y)
             remaining = goal - done
             if remaining <= 0.005:
@@ -234,14 +246,18 @@ async def drive_distance(base, distance: float, speed: float, *, decel: float = 
 
 
 async def turn_by(base, angle: float, rate: float, *, decel: float = math.radians(70.0),
-                  timeout: float | None = None) -> None:
-    """Turn in place by ``angle`` rad (CCW +) at up to ``rate`` rad/s, slowing down at ``decel`` rad/s^2."""
+                  timeout: float | None = None, resume: bool = False) -> None:
+    """Turn in place by ``angle`` rad (CCW +) at up to ``rate`` rad/s, slowing down at ``decel`` rad/s^2.
+
+    A reconnect on the way raises MotionInterrupted unless ``resume``."""
+    guard = ReconnectGuard(base, resume, f"turn of {math.degrees(angle):+.0f} deg")
     start = base.latest
     goal_yaw = start.yaw + angle
     limit = timeout if timeout is not None else (3.0 * abs(angle) / rate + 5.0) / base.settings.time_scale
     t_end = time.monotonic() + limit
     async with contextlib.aclosing(base.odometry()) as poses:
         async for odom in poses:
+            guard.check()
             err = math.atan2(math.sin(goal_yaw - odom.yaw), math.cos(goal_yaw - odom.yaw))
             if abs(err) < math.radians(1.0):
                 break
@@ -252,11 +268,14 @@ async def turn_by(base, angle: float, rate: float, *, decel: float = math.radian
     await base.stop()
 
 
-async def drive_square(base, side: float, speed: float, rate: float) -> None:
+async def drive_square(base, side: float, speed: float, rate: float, *, resume: bool = False) -> None:
     """Drive a square of ``side`` m turning left at each corner; ends near the start pose."""
+    guard = ReconnectGuard(base, resume, "square")
     for _ in range(4):
-        await drive_distance(base, side, speed)
-        await turn_by(base, math.pi / 2, rate)
+        await drive_distance(base, side, speed, resume=resume)
+        guard.check()
+        await turn_by(base, math.pi / 2, rate, resume=resume)
+        guard.check()
 
 
 KEY_HELP = "w/s or up/down: speed  a/d or left/right: turn  space: stop  x: e-stop  q: quit"
@@ -272,6 +291,7 @@ async def teleoperate(base, *, step_v: float = 0.05, step_w: float = math.radian
     loop = asyncio.get_running_loop()
     keys: asyncio.Queue[bytes] = asyncio.Queue()
     v = w = 0.0
+    reconnects = base.stats.reconnects
     try:
         tty.setcbreak(fd)
         loop.add_reader(fd, lambda: keys.put_nowait(os.read(fd, 32)))
@@ -295,6 +315,10 @@ async def teleoperate(base, *, step_v: float = 0.05, step_w: float = math.radian
                     elif key == "x":
                         v = w = 0.0
                         await base.estop()
+            if base.stats.reconnects != reconnects:  # back at rest after a lost link: stay there
+                reconnects = base.stats.reconnects
+                v = w = 0.0
+                sys.stderr.write("\nlink lost and re-opened: stopped; drive on with the keys\n")
             s = base.settings
             v = max(-s.max_v, min(s.max_v, v))
             w = max(-s.max_omega, min(s.max_omega, w))

@@ -350,3 +350,30 @@ async def test_silent_tcp_server_gets_a_tcp_hint_not_a_serial_one():
         assert "9600" not in msg and "cable" not in msg and "SERIAL" not in msg
     finally:
         server.close()
+
+
+@pytest.mark.parametrize("resume", [False, True], ids=["stops", "continues"])
+async def test_scripted_drive_stops_and_reports_after_a_reconnect(emulator_factory, resume):
+    """`glassmap pioneer drive` must not set off again by itself once the client has re-opened a lost link."""
+    import asyncio
+
+    from drivers.pioneer.cli import drive_distance
+    from drivers.pioneer.motion_guard import MotionInterrupted
+
+    emu, url = await emulator_factory()
+    async with PioneerClient.connect(url, enable_motors=True, settings=fast_settings(sip_timeout=3.0)) as base:
+        drive = asyncio.ensure_future(drive_distance(base, 3.0, 0.3, timeout=60, resume=resume))
+        await eventually(lambda: emu.robot.distance > 0.3, what="driving")
+        emu.link_loss(outage=1.0)
+        if not resume:
+            with pytest.raises(MotionInterrupted, match="continue-after-reconnect"):
+                await asyncio.wait_for(drive, 30)
+            n = base.stats.sips
+            await eventually(lambda: base.stats.sips > n + 10, what="SIPs after the reconnect")
+            assert emu.robot.velocity == (0.0, 0.0) and emu.commanded_velocity == (0.0, 0.0)
+            assert emu.robot.distance < 2.0
+        else:
+            await asyncio.wait_for(drive, 40)
+            await settle(base, emu)
+            assert base.stats.reconnects == 1
+            assert emu.robot.distance == pytest.approx(3.0, abs=0.15)
