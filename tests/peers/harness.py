@@ -19,6 +19,7 @@ import asyncio
 import json
 import math
 import os
+import socket
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -110,6 +111,12 @@ async def _run(cmd: list[str], env: dict, cwd: Path, timeout: float) -> tuple[st
     return out.decode(errors="replace"), proc.returncode
 
 
+def _closed_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
 async def run_aria(root: Path, session: AriaSession, timeout: float = 150.0) -> PeerRun:
     """Run one ARIA program against a real-robot Pioneer emulator (real time); record both directions."""
     emu = PioneerEmulator(seed=0)
@@ -117,7 +124,8 @@ async def run_aria(root: Path, session: AriaSession, timeout: float = 150.0) -> 
     emu.taps.append(rec)
     url = await (emu.serve_pty() if session.link == "pty" else emu.serve_tcp())
     if session.link == "pty":
-        target = ["-robotPort", url.split("://", 1)[1].split("?", 1)[0]]
+        # ARIA first tries a simulator on localhost TCP: point that try at a port nobody listens on
+        target = ["-robotPort", url.split("://", 1)[1].split("?", 1)[0], "-remoteRobotTcpPort", str(_closed_port())]
     else:
         target = ["-remoteHost", "127.0.0.1", "-remoteRobotTcpPort", url.rsplit(":", 1)[1]]
     env = dict(os.environ, ARIA=str(root), LD_LIBRARY_PATH=str(root / "lib"))
@@ -162,7 +170,7 @@ async def record_all(aria: Path | None, urg: Path | None, out: Path) -> None:
             if run.returncode != 0:
                 print(run.output[-2000:])
                 continue
-            run.capture.note = note("AriaCoda", commit, f"{s.program} -robotPort PTY" if s.link == "pty" else
+            run.capture.note = note("AriaCoda", commit, f"{s.program} -robotPort PTY -remoteRobotTcpPort CLOSED_PORT" if s.link == "pty" else
                                     f"{s.program} -remoteHost 127.0.0.1 -remoteRobotTcpPort PORT", s.link,
                                     run.result)
             run.capture.save(out / f"peer-{s.name}.jsonl")
