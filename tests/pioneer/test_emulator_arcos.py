@@ -10,7 +10,7 @@ import pytest
 from drivers.pioneer.packets import SYNC0, SYNC1, SYNC2, Cmd, PacketParser, build_packet, command
 from drivers.pioneer.sip import decode_config, decode_sip
 from drivers.transport import open_transport
-from tests.pioneer.conftest import eventually
+from tests.helpers import eventually
 
 pytestmark = pytest.mark.timeout(60)
 
