@@ -177,6 +177,7 @@ class PioneerEmulator:
 
         self._rng = random.Random(self.faults.seed)
         self._t0 = time.monotonic()
+        self._virtual_t: float | None = None  # emulated time when offline (go_offline)
         self._session = _SESSION_OPEN if self.faults.still_open else _SESSION_CLOSED
         self._still_open_pending = self.faults.still_open
         self.motors_enabled = self.behaviour.motors_start_enabled
@@ -207,8 +208,39 @@ class PioneerEmulator:
 
     # -- public API ------------------------------------------------------------------------------------
     def now(self) -> float:
-        """Emulated time (s) since the emulator was created."""
+        """Emulated time (s) since the emulator was created (or since :meth:`go_offline`)."""
+        if self._virtual_t is not None:
+            return self._virtual_t
         return (time.monotonic() - self._t0) * self.time_scale
+
+    # -- offline: the controller without a link or a clock, for deterministic replays -----------------
+    def go_offline(self) -> None:
+        """Run without a link and without real time: emulated time starts at 0 and moves only with
+        :meth:`advance`; host bytes come in through :meth:`receive`; everything the controller sends goes
+        to ``taps`` (stamped with emulated time)."""
+        self._virtual_t = 0.0
+        self._next_cycle = self.sip_period
+        self._offline_parser = PacketParser(inter_byte_timeout=None)
+        self._last_rx = 0.0
+
+    def advance(self, t: float) -> None:
+        """Offline: run the controller's cycles (one every ``sip_period``) up to emulated time ``t`` (s)."""
+        if self._virtual_t is None:
+            raise RuntimeError("advance() needs go_offline() first")
+        while self._next_cycle <= t:
+            self._virtual_t = self._next_cycle
+            self._cycle(self._virtual_t, self.sip_period)
+            self._next_cycle += self.sip_period
+        self._virtual_t = max(self._virtual_t, t)
+
+    def receive(self, data: bytes) -> None:
+        """Offline: host -> controller bytes arriving at the current emulated time."""
+        if self._virtual_t is None:
+            raise RuntimeError("receive() needs go_offline() first")
+        for tap in self.taps:
+            tap("tx", self._virtual_t, data)
+        for pkt in self._offline_parser.feed(data):
+            self._handle(pkt.pid, pkt.payload)
 
     @property
     def is_open(self) -> bool:
@@ -347,6 +379,10 @@ class PioneerEmulator:
         return host is None or host == self.line_baud
 
     def _write(self, data: bytes) -> None:
+        if self._virtual_t is not None:
+            for tap in self.taps:
+                tap("rx", self._virtual_t, data)
+            return
         w = self._writer
         if w is None or w.is_closing():
             return
