@@ -75,6 +75,12 @@ URG_SESSIONS = (
     UrgSession("urg-get_distance_intensity", "get_distance_intensity"),
     UrgSession("urg-get_multiecho_intensity", "get_multiecho_intensity"),
     UrgSession("urg-sync_time_stamp", "sync_time_stamp"),
+    UrgSession("urg-get_multiecho", "get_multiecho"),
+    UrgSession("urg-calculate_xy", "calculate_xy"),
+    UrgSession("urg-get_distance_handshake", "get_distance_handshake", ("[mm]",)),
+    UrgSession("urg-timeout_test", "timeout_test", ("n = 0",)),  # nothing unasked-for within 3 s
+    UrgSession("urg-reboot_test", "reboot_test"),
+    UrgSession("urg-angle_convert_test", "angle_convert_test", ("urg_step2deg(540): 135.000000",)),
 )
 
 
