@@ -1,6 +1,7 @@
 """The simulator-driven emulator, the ``glassmap hokuyo`` commands and the decode benchmark."""
 
 import asyncio
+import socket
 import sys
 
 import numpy as np
@@ -58,7 +59,10 @@ async def test_cli_probe_stream_and_record_against_the_emulator(tmp_path):
     cap = Capture.load(path)
     assert cap.device == "hokuyo" and cap.rx_bytes().count(b"\n99b\n") >= 5
     await emu.close()
-    code, out, err = await run_cli("probe", "tcp://127.0.0.1:1")
+    with socket.socket() as free:  # a port nobody listens on (port 1 may be in use on a busy machine)
+        free.bind(("127.0.0.1", 0))
+        dead = free.getsockname()[1]
+    code, out, err = await run_cli("probe", f"tcp://127.0.0.1:{dead}")
     assert code == 1 and "error:" in err
 
 
