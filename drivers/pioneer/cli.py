@@ -139,14 +139,16 @@ def _fail(msg: str) -> int:
 def _probe(args: argparse.Namespace) -> int:
     from drivers.errors import DriverError
     from drivers.pioneer.client import PioneerClient
+    from drivers.pioneer.errors import HandshakeError
 
     if args.sips < 0:
         return _fail("--sips must be >= 0")
 
     async def main() -> int:
-        async with PioneerClient.connect(args.url, settings=_settings(args, read_config=args.config)) as base:
+        async with PioneerClient.connect(args.url, _settings(args, read_config=args.config)) as base:
             info, m = base.info, base.model
-            assert info is not None and m is not None
+            if info is None or m is None:
+                raise HandshakeError(f"{args.url}: connected without a SYNC2 reply")
             print(f"name: {info.name}\nclass: {info.robot_class}\nsubclass: {info.subclass}")
             print(f"conversion: {m.dist_conv} mm/unit, {m.angle_conv} rad/unit, DiffConv {m.diff_conv}")
             if args.config:
@@ -157,7 +159,8 @@ def _probe(args: argparse.Namespace) -> int:
                     if n >= args.sips:
                         break
                     sip, st = base.last_sip, base.state
-                    assert sip is not None and st is not None
+                    if sip is None or st is None:  # odometry comes from a SIP: both are set by then
+                        continue
                     print(f"SIP 0x{0x33 if sip.moving else 0x32:02x} x={odom.x:+.3f} m y={odom.y:+.3f} m "
                           f"yaw={math.degrees(odom.yaw):+7.2f} deg v={odom.v:+.3f} m/s "
                           f"omega={math.degrees(odom.omega):+6.1f} deg/s battery={st.battery_volts:.1f} V "
@@ -185,7 +188,7 @@ def _drive(args: argparse.Namespace) -> int:
     settings = _settings(args, max_v=args.max_speed, max_omega=math.radians(args.max_turn_rate))
 
     async def main() -> int:
-        async with PioneerClient.connect(args.url, enable_motors=True, settings=settings) as base:
+        async with PioneerClient.connect(args.url, settings, enable_motors=True) as base:
             if args.teleop:
                 await teleoperate(base)
             elif args.line is not None:
