@@ -339,7 +339,12 @@ def _emulate(args: argparse.Namespace) -> int:
         return _fail(str(exc))
 
     async def main() -> int:
-        url = await (emu.serve_tcp(args.tcp) if args.tcp is not None else emu.serve_pty())
+        try:
+            url = await (emu.serve_tcp(args.tcp) if args.tcp is not None else emu.serve_pty())
+        except OSError as exc:  # e.g. the port is in use
+            await emu.close()
+            where = f"tcp port {args.tcp}" if args.tcp is not None else "a pseudo-terminal"
+            return _fail(f"cannot serve on {where}: {exc.strerror or exc}")
         print(url, flush=True)
         print("emulating a Pioneer 3-DX; Ctrl-C to stop", file=sys.stderr)
         try:

@@ -46,7 +46,8 @@ from drivers.errors import DriverError, TransportError
 from drivers.pioneer.errors import (ClientClosedError, DecodeError, HandshakeError, HandshakeTimeout,
                                     LinkLostError)
 from drivers.pioneer.odometry import CovarianceModel, PioneerModel
-from drivers.pioneer.packets import HOSTBAUD_CODES, SIP_IDS, SYNC0, SYNC1, SYNC2, Cmd, Packet, PacketType, build_packet, command
+from drivers.pioneer.packets import (HOSTBAUD_CODES, SIP_IDS, SYNC0, SYNC1, SYNC2, Cmd, Packet, PacketType,
+                                     build_packet, command)
 from drivers.pioneer.session import BaseState, PioneerSession, PioneerStats
 from drivers.pioneer.sip import ConfigPacket, EncoderPacket, StandardSIP, SyncReply, decode_config, decode_sync2
 from drivers.transport import Tap, Transport, open_transport
