@@ -198,7 +198,8 @@ def _drive(args: argparse.Namespace) -> int:
                                    math.radians(args.turn_rate))
             await base.stop()
             odom = base.latest
-            assert odom is not None
+            if odom is None:  # connect waits for the first SIP, so this does not happen
+                return _fail("no odometry from the robot")
             print(f"final odometry: x={odom.x:+.3f} m y={odom.y:+.3f} m yaw={math.degrees(odom.yaw):+.2f} deg "
                   f"(sigma_x={math.sqrt(odom.covariance[0, 0]):.3f} m, "
                   f"sigma_yaw={math.degrees(math.sqrt(odom.covariance[2, 2])):.2f} deg)")
