@@ -8,10 +8,10 @@ import socket
 
 import pytest
 
-from glassmap.cli import main
+from runtime.cli import main
 from runtime import messages as M
 from runtime.recorder import McapRecorder
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 
 
 def run(capsys, *argv: str) -> tuple[int, str]:
