@@ -69,6 +69,7 @@ class Transport(ABC):
         self.taps: list[Tap] = []
         self.bytes_in = 0
         self.bytes_out = 0
+        self.last_read_time = 0.0  # host time (time.monotonic) of the last read, as the taps saw it
         self._closed = False
 
     @property
@@ -86,14 +87,16 @@ class Transport(ABC):
         if not data:
             raise TransportClosed(f"{self.url}: peer closed the connection")
         self.bytes_in += len(data)
-        self._tap("rx", data)
+        self.last_read_time = time.monotonic()
+        self._tap("rx", data, self.last_read_time)
         return data
 
-    async def write(self, data: bytes) -> None:
-        """Send bytes and wait until they are handed to the OS."""
+    async def write(self, data: bytes, *, at: float | None = None) -> None:
+        """Send bytes and wait until they are handed to the OS. ``at``: the host time the taps see (default
+        now), so that a caller who noted the time of a command records the same time."""
         if self._closed:
             raise TransportClosed(f"{self.url}: transport is closed")
-        self._tap("tx", data)
+        self._tap("tx", data, time.monotonic() if at is None else at)
         try:
             await self._write(data)
         except OSError as exc:
@@ -113,11 +116,9 @@ class Transport(ABC):
         """Change the line speed (serial only)."""
         raise TransportError(f"{self.url}: this transport has no baud rate")
 
-    def _tap(self, direction: str, data: bytes) -> None:
-        if self.taps:
-            t = time.monotonic()
-            for tap in self.taps:
-                tap(direction, t, data)
+    def _tap(self, direction: str, data: bytes, t: float) -> None:
+        for tap in self.taps:
+            tap(direction, t, data)
 
     async def __aenter__(self) -> Transport:
         return self

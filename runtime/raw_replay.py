@@ -8,8 +8,9 @@ parser, SYNC2 model, odometry tracker). What this module adds is only what a liv
 reading it from the bytes: where a new connection starts and which packets arrive during a handshake
 (see :class:`HokuyoReplay` and :class:`PioneerReplay`).
 
-The clients take their arrival times from ``time.monotonic()`` right after the transport read that also
-called the recording tap, so replayed stamps agree with the live ones to within microseconds.
+The clients give their sessions the very host times the transport's taps record (``last_read_time`` of each
+read, the time noted for each command write), so replayed stamps agree with the live ones up to the
+recording's time resolution, however loaded the machine was.
 
 Why not the client classes themselves over a fake link? Their handshakes wait on real timeouts and they
 read the clock themselves; feeding recorded chunks to their receive sessions is exact and as fast as the

@@ -283,8 +283,9 @@ class HokuyoClient:
         link.pending.append(entry)
         timeout = timeout or self.settings.timeout
         try:
-            self.session.sent(time.monotonic(), line)
-            await link.transport.write(line)
+            t = time.monotonic()
+            self.session.sent(t, line)  # before the write: a reply may come before write() returns
+            await link.transport.write(line, at=t)  # taps (recordings) see the same time as the session
             reply = await asyncio.wait_for(fut, timeout)
         except asyncio.TimeoutError:
             raise DeviceTimeout(f"{self.url}: no reply to {line[:-1].decode()!r} within "
@@ -360,7 +361,7 @@ class HokuyoClient:
         try:
             while True:
                 data = await link.transport.read()
-                scans, replies = self.session.received(time.monotonic(), data)
+                scans, replies = self.session.received(link.transport.last_read_time, data)  # the taps' time
                 if self.session.last_scan is not None and self.session.last_scan > link.last_scan:
                     link.last_scan = self.session.last_scan
                 for scan in scans:

@@ -440,7 +440,7 @@ class PioneerClient:
                 data = await asyncio.wait_for(transport.read(), left)
             except asyncio.TimeoutError:
                 return None
-            self._pending.extend(self.session.feed(data, time.monotonic()))
+            self._pending.extend(self.session.feed(data, transport.last_read_time))  # the taps' time
         return self._pending.pop(0)
 
     async def _drain(self, transport: Transport, quiet: float, limit: float) -> None:
@@ -581,8 +581,7 @@ class PioneerClient:
             try:
                 while True:
                     data = await t.read()
-                    now = time.monotonic()
-                    for pkt in self.session.feed(data, now):
+                    for pkt in self.session.feed(data, t.last_read_time):  # the time the taps recorded
                         self._on_packet(pkt)
             except TransportError as exc:
                 self._link_lost(exc)

@@ -54,5 +54,5 @@ async def test_raw_replay_of_a_multi_echo_session_gives_the_live_scans_echoes_in
     # host stamps: the capture's clock starts at its first chunk; relative stamps agree
     d_live = np.diff([s.stamp for s in live])
     d_rep = np.diff([s.stamp for s in replayed])
-    assert np.allclose(d_rep, d_live, atol=1e-4)
+    assert np.allclose(d_rep, d_live, atol=1e-5)  # the taps record the times the session saw
     assert rep.session.stats.corrupted >= stats.corrupted  # the replay also sees what came after the close
