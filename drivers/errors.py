@@ -5,6 +5,10 @@ class DriverError(Exception):
     """Base class of every error raised by the drivers."""
 
 
+class InvalidURL(DriverError, ValueError):
+    """A device URL that cannot name a link (unknown scheme, missing host or port, bad baud rate)."""
+
+
 class TransportError(DriverError):
     """The byte link failed: cannot open, closed by the peer, or I/O error."""
 

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from urllib.parse import parse_qs, urlparse
 
-from drivers.errors import TransportClosed, TransportError
+from drivers.errors import InvalidURL, TransportClosed, TransportError
 
 Tap = Callable[[str, float, bytes], None]
 
@@ -32,21 +32,33 @@ class TransportURL:
 
     @classmethod
     def parse(cls, url: str) -> TransportURL:
-        u = urlparse(url)
+        """Parse and check a URL without opening anything; InvalidURL (a ValueError) says what is wrong."""
+        try:
+            u = urlparse(url)
+            port = u.port
+        except ValueError as exc:  # urlparse's port check: "Port could not be cast to integer value", ...
+            raise InvalidURL(f"bad URL {url!r}: {exc}; expected tcp://HOST:PORT or serial:///dev/PATH") from None
         if u.scheme == "tcp":
-            if not u.hostname or u.port is None:
-                raise ValueError(f"bad TCP URL {url!r}: expected tcp://HOST:PORT")
-            return cls("tcp", host=u.hostname, port=u.port)
+            if not u.hostname or port is None:
+                raise InvalidURL(f"bad TCP URL {url!r}: expected tcp://HOST:PORT (PORT a number, 1-65535)")
+            if port == 0:
+                raise InvalidURL(f"bad TCP URL {url!r}: port 0 cannot be connected to")
+            return cls("tcp", host=u.hostname, port=port)
         if u.scheme == "serial":
-            if not u.path:
-                raise ValueError(f"bad serial URL {url!r}: expected serial:///dev/ttyXXX[?baud=N]")
+            if not u.path or u.netloc:
+                raise InvalidURL(f"bad serial URL {url!r}: expected serial:///dev/ttyXXX[?baud=N] (three slashes)")
             q = parse_qs(u.query)
+            unknown = sorted(set(q) - {"baud"})
+            if unknown:
+                raise InvalidURL(f"bad serial URL {url!r}: unknown option {unknown[0]!r} (only baud=N)")
             try:
                 baud = int(q.get("baud", ["115200"])[0])
             except ValueError:
-                raise ValueError(f"bad serial URL {url!r}: baud must be an integer") from None
+                raise InvalidURL(f"bad serial URL {url!r}: baud must be a whole number, e.g. ?baud=9600") from None
+            if baud <= 0:
+                raise InvalidURL(f"bad serial URL {url!r}: baud must be > 0")
             return cls("serial", path=u.path, baud=baud)
-        raise ValueError(f"unsupported transport URL {url!r}: use tcp://HOST:PORT or serial:///dev/PATH")
+        raise InvalidURL(f"unsupported device URL {url!r}: use tcp://HOST:PORT or serial:///dev/PATH[?baud=N]")
 
 
 class Transport(ABC):
@@ -57,6 +69,7 @@ class Transport(ABC):
         self.taps: list[Tap] = []
         self.bytes_in = 0
         self.bytes_out = 0
+        self.last_read_time = 0.0  # host time (time.monotonic) of the last read, as the taps saw it
         self._closed = False
 
     @property
@@ -74,14 +87,16 @@ class Transport(ABC):
         if not data:
             raise TransportClosed(f"{self.url}: peer closed the connection")
         self.bytes_in += len(data)
-        self._tap("rx", data)
+        self.last_read_time = time.monotonic()
+        self._tap("rx", data, self.last_read_time)
         return data
 
-    async def write(self, data: bytes) -> None:
-        """Send bytes and wait until they are handed to the OS."""
+    async def write(self, data: bytes, *, at: float | None = None) -> None:
+        """Send bytes and wait until they are handed to the OS. ``at``: the host time the taps see (default
+        now), so that a caller who noted the time of a command records the same time."""
         if self._closed:
             raise TransportClosed(f"{self.url}: transport is closed")
-        self._tap("tx", data)
+        self._tap("tx", data, time.monotonic() if at is None else at)
         try:
             await self._write(data)
         except OSError as exc:
@@ -101,11 +116,9 @@ class Transport(ABC):
         """Change the line speed (serial only)."""
         raise TransportError(f"{self.url}: this transport has no baud rate")
 
-    def _tap(self, direction: str, data: bytes) -> None:
-        if self.taps:
-            t = time.monotonic()
-            for tap in self.taps:
-                tap(direction, t, data)
+    def _tap(self, direction: str, data: bytes, t: float) -> None:
+        for tap in self.taps:
+            tap(direction, t, data)
 
     async def __aenter__(self) -> Transport:
         return self

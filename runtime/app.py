@@ -76,7 +76,11 @@ class RunSummary:
 
 
 class Runtime:
-    """One run of the robot program. Build it, then ``await runtime.run()``."""
+    """One run of the robot program. Build it, then ``await runtime.run()``.
+
+    hokuyo_options / pioneer_options: fields of ``HokuyoSettings`` / ``PioneerSettings`` that replace the
+    ones made from the config (e.g. ``{"time_scale": 4.0}`` for emulators running 4x faster).
+    """
 
     def __init__(self, config: RuntimeConfig, *, processor: MappingProcessor | None = None,
                  hokuyo_options: dict | None = None, pioneer_options: dict | None = None,
@@ -138,6 +142,7 @@ class Runtime:
             meta = recording_metadata(self.time_base, laser_url=cfg.resolved_laser_url(),
                                       base_url=cfg.resolved_base_url(),
                                       base_time_scale=self.pioneer_options.get("time_scale", 1.0),
+                                      base_model=self.pioneer_options.get("model") or "",
                                       mapping=json.dumps(dataclasses.asdict(cfg.mapping)))
             self.recorder = McapRecorder(cfg.output.record, chunk_size=cfg.output.chunk_size,
                                          chunk_interval=cfg.output.chunk_interval,
@@ -206,8 +211,8 @@ class Runtime:
         return self.summary
 
     async def _connect(self) -> None:
-        from drivers.hokuyo.client import HokuyoClient
-        from drivers.pioneer.client import PioneerClient
+        from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
+        from drivers.pioneer.client import PioneerClient, PioneerSettings
 
         cfg = self.config
         laser_url = cfg.resolved_laser_url()
@@ -215,15 +220,15 @@ class Runtime:
         if self.sink is not None:
             taps.append(self.sink.tap("laser", laser_url))
         opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, **self.hokuyo_options}
-        self.laser = await HokuyoClient.connect(laser_url, taps=taps, **opts)
+        self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)
         log.info("laser connected: %s", laser_url)
         base_url = cfg.resolved_base_url()
         if base_url.lower() not in ("", "none"):
             btaps = [self.sink.tap("base", base_url)] if self.sink is not None else []
             popts = {"max_v": cfg.base.max_v, "max_omega": cfg.base.max_omega, **self.pioneer_options}
             try:
-                self.base = await PioneerClient.connect(base_url, enable_motors=cfg.base.enable_motors,
-                                                        taps=btaps, **popts)
+                self.base = await PioneerClient.connect(base_url, PioneerSettings(**popts), taps=btaps,
+                                                        enable_motors=cfg.base.enable_motors)
             except BaseException:
                 await self.laser.close()
                 raise

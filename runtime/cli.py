@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--laser", metavar="URL", help="laser URL (default from [laser]: tcp://192.168.0.10:10940)")
     p.add_argument("--base", metavar="URL", help="base URL (default from [base]: serial:///dev/ttyUSB0?baud=9600; "
                    "'none' = no base: mapping from scan matching alone)")
-    p.add_argument("--record", metavar="FILE", help="record everything to this MCAP file (= output.record)")
+    p.add_argument("--record", metavar="FILE", help="record everything to this MCAP file (= output.record; "
+                   "its directory must exist)")
     p.add_argument("--out", metavar="DIR", help="map output directory (= output.out_dir)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--teleop", action="store_true", help="drive with the keyboard (enables the motors)")
@@ -116,8 +117,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_out(r, "out/replay", "output directory (one map set per file)")
     r.add_argument("--all-scans", action="store_true", help="process every scan, also those the live run "
                    "dropped (default: only the scans the live run processed, so the maps can match)")
-    add_world(r, None, "score the map against this simulator world's blueprint")
-    r.add_argument("--limit", type=int, default=None, metavar="N", help="stop after N scans (a quick look)")
+    add_world(r, None, "score the map against this simulator world's blueprint, with the demo's rule (the "
+              "cells the simulated laser saw, see --seen)")
+    r.add_argument("--seen", default=None, metavar="FILE", help="the demo's record of the cells the simulated "
+                   "laser saw (default: seen_cells.npy beside the recording; without it the cells the map "
+                   "observed stand in, which scores differently)")
+    r.add_argument("--limit", type=int, default=None, metavar="N", help="stop after N scans, N >= 1 (a quick look)")
     add_workers(r, "parallel processes for several files")
     r.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, "
                    "e.g. tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
@@ -169,6 +174,8 @@ def cmd_run(args) -> int:
         cfg.output.record = args.record
     if args.out:
         cfg.output.out_dir = args.out
+    if (rc := _check_run_inputs(cfg)) != 0:
+        return rc
     driver = None
     if args.teleop:
         from runtime.teleop import keyboard_driver
@@ -188,6 +195,23 @@ def cmd_run(args) -> int:
         print(f"map {k}: {v}")
     if summary.recording:
         print(f"recording: {summary.recording} ({summary.recorded_messages} messages)")
+    return 0
+
+
+def _check_run_inputs(cfg: RuntimeConfig) -> int:
+    """Device URLs and the recording path checked before anything is opened or loaded; 2 (with one line on
+    stderr) if one is unusable."""
+    from drivers.errors import InvalidURL
+    from runtime.inputs import InputError, check_device_url, check_output_file
+
+    try:
+        check_device_url(cfg.resolved_laser_url(), "laser")
+        check_device_url(cfg.resolved_base_url(), "base", optional=True)
+        if cfg.output.record:
+            check_output_file(cfg.output.record, "recording")
+    except (InvalidURL, InputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -220,24 +244,31 @@ def cmd_replay(args) -> int:
     from runtime.readers import ReplayInputError
     from runtime.replay import ReplayJob, recorded_config, replay_file, replay_many, summarize
 
+    if args.limit is not None and args.limit < 1:
+        print(f"error: --limit must be >= 1, got {args.limit}", file=sys.stderr)
+        return 2
     jobs = []
     for i, f in enumerate(args.files):
         cfg = _config(args, base=recorded_config(f))
         stem = "glass_map" if len(args.files) == 1 else f"glass_map_{i:03d}"
         jobs.append(ReplayJob(path=f, config=cfg, source=args.source, out_dir=args.out, stem=stem,
-                              world=args.world))
+                              world=args.world, seen=args.seen))
     if len(jobs) == 1 and not args.dask:
         j = jobs[0]
         try:
             res = replay_file(j.path, j.config, source=j.source, out_dir=j.out_dir, stem=j.stem,
                               progress=not args.no_progress, world=j.world, as_recorded=not args.all_scans,
-                              limit=args.limit)
+                              limit=args.limit, seen=j.seen)
         except (ReplayInputError, ValueError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
         print(summarize([res]))
+        for note in res.notes:
+            print(f"note: {note}")
         if res.skipped:
             print(f"{res.skipped} scans skipped: the live run dropped them (--all-scans processes them too)")
+        if res.after_end:
+            print(f"{res.after_end} scans after the live run's last processed scan (it was stopping) not processed")
         for k, v in res.exports.items():
             print(f"map {k}: {v}")
         return 0
@@ -260,9 +291,13 @@ def cmd_bench(args) -> int:
 
 
 def cmd_recover(args) -> int:
-    from runtime.recorder import recover_mcap
+    from runtime.inputs import InputError, recover_recording
 
-    rep = recover_mcap(args.src, args.dst)
+    try:
+        rep = recover_recording(args.src, args.dst)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     print(f"{args.dst}: {rep.messages} messages recovered")
     for t, n in sorted(rep.topics.items()):
         print(f"  {t}: {n}")

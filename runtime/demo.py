@@ -22,7 +22,7 @@ import numpy as np
 
 from runtime.app import Runtime, RunSummary
 from runtime.config import RuntimeConfig
-from runtime.evaluate import MapEvaluation, evaluate_map
+from runtime.evaluate import MapEvaluation, TrajectoryEvaluation, evaluate_map, evaluate_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -49,12 +49,19 @@ class DemoOptions:
 
 @dataclass
 class DemoResult:
+    """What a demo did. true_final_pose and estimated_final_pose are of the same instant: the last processed
+    scan (the true pose the emulated laser ranged from, and the estimate made from that scan);
+    true_pose_at_stop is the simulator's pose when the devices stopped (after braking); trajectory scores
+    every processed scan against its true pose."""
+
     summary: RunSummary
     evaluation: MapEvaluation | None
     png: str = ""
     recording: str = ""
-    true_final_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    true_final_pose: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     estimated_final_pose: np.ndarray | None = None
+    true_pose_at_stop: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    trajectory: TrajectoryEvaluation | None = None
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
     stages: dict[str, list[float]] = field(default_factory=dict)
@@ -98,8 +105,7 @@ def route_driver(waypoints: np.ndarray, speed: float, max_v: float, max_omega: f
 
 async def _come_to_rest(rt: Runtime, speed: float, timeout: float = 3.0) -> None:
     """After the last command: wait (at most ``timeout`` emulated s) until the odometry says the robot is at
-    rest, then for two more processed scans, so that the final estimate is of the robot where it stopped
-    (the final pose error compares it with the simulator's pose at the end)."""
+    rest, then for two more processed scans, so that the final estimate is of the robot where it stopped."""
     loop = asyncio.get_running_loop()
     end = loop.time() + timeout / speed
     while loop.time() < end:
@@ -127,8 +133,16 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     out = Path(opts.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg = opts.config or RuntimeConfig()
-    seen_path = out / "seen_cells.npy"
-    devices = await DeviceProcess.start(opts.world, opts.speed, opts.seed, seen_path=str(seen_path))
+    seen_path, truth_path = out / "seen_cells.npy", out / "true_poses.npy"
+    devices = await DeviceProcess.start(opts.world, opts.speed, opts.seed, seen_path=str(seen_path),
+                                        truth_path=str(truth_path))
+    estimates: list[tuple[float, float, float, float]] = []  # per processed scan: stamp (ms, 24-bit), x, y, yaw
+
+    def on_result(r) -> None:
+        if r.estimate is not None and r.scan.sensor_stamp is not None:
+            estimates.append((float(round(r.scan.sensor_stamp * 1000) % (1 << 24)), r.estimate.x, r.estimate.y,
+                              r.estimate.yaw))
+
     report: dict = {}
     try:
         cfg.laser_url, cfg.base_url = devices.laser_url, devices.base_url
@@ -164,7 +178,8 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
                 bar.refresh()
 
         driver = route_driver(waypoints, opts.speed, opts.max_v, opts.max_omega, progress)
-        rt = Runtime(cfg, pioneer_options={"time_scale": opts.speed}, driver=driver, export_stem="glass_map")
+        rt = Runtime(cfg, pioneer_options={"time_scale": opts.speed}, driver=driver, export_stem="glass_map",
+                     on_result=on_result)
         cable_pull = None
         if opts.laser_link_loss_at is not None:
             async def pull_laser_cable() -> None:  # counted from the first processed scan, not from start-up
@@ -192,10 +207,18 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     except Exception as exc:  # the map is still written; say why there is no score
         log.error("evaluation against the blueprint failed: %s", exc)
     est = rt.pose.pose if rt.pose is not None else None
-    true_pose = np.asarray(report.get("true_pose", [np.nan] * 3))
+    trajectory = None
+    true_final = np.full(3, np.nan)
+    if truth_path.exists() and estimates:
+        truth = np.load(truth_path)
+        trajectory = evaluate_trajectory(np.asarray(estimates), truth)
+        at = truth[truth[:, 0] == estimates[-1][0]]
+        if len(at):
+            true_final = at[-1, 1:].copy()
     return DemoResult(summary=summary, evaluation=evaluation, png=summary.exports.get("png", ""),
-                      recording=cfg.output.record, true_final_pose=true_pose,
-                      estimated_final_pose=est, route_done=driver.follower.done,  # type: ignore[attr-defined]
+                      recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
+                      true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
+                      route_done=driver.follower.done,  # type: ignore[attr-defined]
                       latency=list(rt.latency.latency), stages=dict(rt.latency.stages),
                       device_report=report)
 
@@ -204,11 +227,10 @@ def format_result(res: DemoResult) -> str:
     s = res.summary
     lines = [f"stopped: {s.stop_reason} after {s.duration:.1f} s (wall clock)",
              f"{s.stages.summary()}; laser reconnects: {s.laser_reconnects}"]
-    if res.estimated_final_pose is not None:
-        err = np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2]))
-        lines.append(f"final pose: true ({res.true_final_pose[0]:.2f}, {res.true_final_pose[1]:.2f}) m, "
-                     f"estimated ({res.estimated_final_pose[0]:.2f}, {res.estimated_final_pose[1]:.2f}) m, "
-                     f"error {100 * err:.1f} cm")
+    if res.trajectory is not None:
+        lines.append(res.trajectory.describe())
+    else:
+        lines.append("pose error: not available (no true pose matched a processed scan)")
     if res.latency:
         lat = np.asarray(res.latency) * 1e3
         lines.append(f"latency scan bytes in -> maps updated: p50 {np.percentile(lat, 50):.1f} ms, "

@@ -49,7 +49,26 @@ class SeenCells:
         self.mask[cy[ok], cx[ok]] = True
 
 
-async def serve(world_name: str, speed: float, seed: int, seen_path: str | None = None, out=sys.stdout) -> int:
+class TruthLog:
+    """The robot's true pose (x, y, yaw; world = map frame) when each simulated scan was taken, keyed by that
+    scan's 24-bit sensor stamp (ms): the ground truth to score the estimate of the same scan against.
+    ``clock``: the emulated laser's ``clock_ms(t)``, set once the emulator exists."""
+
+    def __init__(self) -> None:
+        self.clock = None
+        self.rows: list[tuple[float, float, float, float]] = []
+
+    def add(self, t: float, pose) -> None:
+        if self.clock is not None:
+            self.rows.append((float(self.clock(t)), float(pose[0]), float(pose[1]), float(pose[2])))
+
+    def save(self, path: str) -> None:
+        """(n, 4) array: sensor stamp (ms, 24-bit), x, y, yaw."""
+        np.save(path, np.asarray(self.rows, np.float64).reshape(-1, 4))
+
+
+async def serve(world_name: str, speed: float, seed: int, seen_path: str | None = None, out=sys.stdout,
+                truth_path: str | None = None) -> int:
     from drivers.hokuyo.emulator import HokuyoEmulator, sim_scan_source
     from drivers.pioneer.emulator import PioneerEmulator
     from glassmap.sim.robot import DiffDriveRobot, RobotParams
@@ -59,8 +78,15 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
     robot = DiffDriveRobot(params=RobotParams(), pose0=tuple(world.start_pose), rng=np.random.default_rng(seed))
     pioneer = PioneerEmulator(robot, time_scale=speed, seed=seed)
     seen = SeenCells(world)
-    source = sim_scan_source(world, lambda t: robot.laser_pose(), seed + 1, on_scan=seen.add)
+    truth = TruthLog()
+
+    def laser_pose(t: float):  # called once per scan, at the pose the scan is ranged from
+        truth.add(t, robot.true_pose)
+        return robot.laser_pose()
+
+    source = sim_scan_source(world, laser_pose, seed + 1, on_scan=seen.add)
     hokuyo = HokuyoEmulator(source, time_scale=speed)
+    truth.clock = hokuyo.clock_ms
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -102,6 +128,8 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
         await pioneer.close()
     if seen_path:
         np.save(seen_path, seen.mask)
+    if truth_path:
+        truth.save(truth_path)
     say({"true_pose": robot.true_pose.tolist(), "odom_pose": robot.odom_pose.tolist(),
          "velocity": list(robot.velocity), "commanded": list(pioneer.commanded_velocity),
          "motors_enabled": bool(pioneer.motors_enabled),
@@ -120,13 +148,15 @@ class DeviceProcess:
 
     @classmethod
     async def start(cls, world: str = "office", speed: float = 1.0, seed: int = 0,
-                    seen_path: str | None = None) -> DeviceProcess:
-        """Start ``python -m runtime.devices``; ``seen_path``: where it saves the seen-cells mask (.npy) at exit."""
+                    seen_path: str | None = None, truth_path: str | None = None) -> DeviceProcess:
+        """Start ``python -m runtime.devices``; ``seen_path`` / ``truth_path``: where it saves the seen-cells
+        mask / the true pose of every scan (.npy, see :class:`TruthLog`) at exit."""
         if speed <= 0 or not math.isfinite(speed):
             raise ValueError(f"speed must be > 0, got {speed}")
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "runtime.devices", "--world", world, "--speed", str(speed), "--seed", str(seed),
-            *(["--seen", seen_path] if seen_path else []), stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+            *(["--seen", seen_path] if seen_path else []), *(["--truth", truth_path] if truth_path else []),
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
             start_new_session=True)  # Ctrl-C in the terminal reaches the runtime only, as with real devices
         try:
             line = await asyncio.wait_for(proc.stdout.readline(), 60.0)
@@ -175,8 +205,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, default=1.0, help="emulated time runs this many times faster")
     p.add_argument("--seed", type=int, default=0, help="random seed of the robot and laser noise")
     p.add_argument("--seen", default=None, help="save the blueprint cells the laser saw to this .npy at exit")
+    p.add_argument("--truth", default=None, help="save the true pose of every scan (stamp ms, x, y, yaw) to this "
+                   ".npy at exit")
     a = p.parse_args(argv)
-    return asyncio.run(serve(a.world, a.speed, a.seed, a.seen))
+    return asyncio.run(serve(a.world, a.speed, a.seed, a.seen, truth_path=a.truth))
 
 
 if __name__ == "__main__":

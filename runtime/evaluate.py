@@ -112,3 +112,48 @@ def evaluate_map(processor, world, *, seen: np.ndarray | None = None, eval_radiu
         result.aligned = score_map(shifted, bp.labels, mask)
         result.shift_cells = (dx, dy)
     return result
+
+
+@dataclass
+class TrajectoryEvaluation:
+    """Estimated poses against the true poses of the same scans (map frame = world frame, metres, radians).
+
+    final_*: at the last processed scan; ate: absolute trajectory error, the RMS of the position errors over
+    all processed scans (no alignment: the estimate starts from the true start pose); max_error: the largest
+    position error; yaw_rms: RMS heading error; n: scans scored (those with a true pose)."""
+
+    n: int
+    ate: float
+    max_error: float
+    yaw_rms: float
+    final_error: float
+    final_true: np.ndarray
+    final_estimate: np.ndarray
+
+    def describe(self) -> str:
+        t, e = self.final_true, self.final_estimate
+        return (f"final pose (last processed scan): true ({t[0]:.2f}, {t[1]:.2f}) m, estimated ({e[0]:.2f}, "
+                f"{e[1]:.2f}) m, error {100 * self.final_error:.1f} cm\n"
+                f"trajectory error over {self.n} scans: ATE (RMS) {100 * self.ate:.1f} cm, max "
+                f"{100 * self.max_error:.1f} cm, heading RMS {np.degrees(self.yaw_rms):.2f} deg")
+
+
+def evaluate_trajectory(estimates: np.ndarray, truth: np.ndarray) -> TrajectoryEvaluation | None:
+    """Score estimates (n, 4: sensor stamp ms (24-bit), x, y, yaw) against ``truth`` (m, 4: the same columns,
+    :class:`runtime.devices.TruthLog`) at the same scans, matched by stamp; None if no scan matches."""
+    est = np.asarray(estimates, np.float64).reshape(-1, 4)
+    tru = np.asarray(truth, np.float64).reshape(-1, 4)
+    if not len(est) or not len(tru):
+        return None
+    order = np.argsort(tru[:, 0], kind="stable")
+    keys = tru[order, 0]
+    k = np.clip(np.searchsorted(keys, est[:, 0]), 0, len(keys) - 1)
+    hit = keys[k] == est[:, 0]
+    if not hit.any():
+        return None
+    e, t = est[hit], tru[order[k[hit]]]
+    d = np.hypot(e[:, 1] - t[:, 1], e[:, 2] - t[:, 2])
+    dyaw = np.angle(np.exp(1j * (e[:, 3] - t[:, 3])))
+    return TrajectoryEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), max_error=float(d.max()),
+                                yaw_rms=float(np.sqrt(np.mean(dyaw ** 2))), final_error=float(d[-1]),
+                                final_true=t[-1, 1:].copy(), final_estimate=e[-1, 1:].copy())

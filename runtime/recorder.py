@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -293,6 +293,8 @@ def recover_mcap(src: str | Path, dst: str | Path, *, compression: str = "zstd")
                     schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
                     channels[rec.id] = rec
+                elif isinstance(rec, Metadata):  # the recording's settings and clock offset
+                    w.add_metadata(rec.name, dict(rec.metadata))
                 elif isinstance(rec, Message) and rec.channel_id in channels:
                     ch = channels[rec.channel_id]
                     if ch.schema_id not in new_schema:

@@ -40,13 +40,16 @@ class ReplayResult:
     path: str
     source: str
     scans: int = 0
-    skipped: int = 0
+    skipped: int = 0  # scans the live run dropped (between its first and last processed scans)
+    after_end: int = 0  # scans after the live run's last processed scan (it was stopping: never processed)
     odometry: int = 0
     wall_time: float = 0.0
     data_time: float = 0.0  # span of scan stamps in the file
     stages: dict[str, list[float]] = field(default_factory=dict)
     exports: dict[str, str] = field(default_factory=dict)
     error: float | None = None  # classification error against a blueprint, when a world was given
+    seen_from: str = ""  # where the scored cells came from: the simulator's record (a file) or the map
+    notes: list[str] = field(default_factory=list)  # what the user should know about this replay
     final_pose: tuple[float, float, float] | None = None
 
     @property
@@ -137,23 +140,56 @@ def iter_source(path: str | Path, source: str = "messages") -> Iterator[Scan | O
     raise ValueError(f"source must be 'messages' or 'raw', got {source!r}")
 
 
+SEEN_FILE = "seen_cells.npy"  # what `glassmap demo` writes beside its recording: the cells the laser saw
+
+
+def seen_cells_for(path: str | Path, seen: str | Path | None = None) -> Path | None:
+    """The seen-cells mask to score a recording with: ``seen`` if given, else the demo's ``seen_cells.npy``
+    beside the recording, else None (then the cells the map observed stand in, see runtime.evaluate)."""
+    if seen is not None:
+        return Path(seen)
+    beside = Path(path).parent / SEEN_FILE
+    return beside if beside.is_file() else None
+
+
+def start_pose_note(path: str | Path, config: RuntimeConfig) -> str | None:
+    """A note when the replay of ``path`` starts the map at the default pose (0, 0, 0) because the file does
+    not record the robot's start pose (a ROS bag; a glassmap recording stores it in its metadata)."""
+    p, m = Path(path), config.mapping
+    recorded = p.suffix == ".mcap" and p.is_file() and "mapping" in read_metadata(p)
+    if recorded or (m.initial_x, m.initial_y, m.initial_yaw) != (0.0, 0.0, 0.0):
+        return None
+    return ("start pose (0, 0, 0) in the map frame: this file does not record where the robot started; give it "
+            "with --mapping.initial_x, --mapping.initial_y (m) and --mapping.initial_yaw (rad)")
+
+
 def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source: str = "messages",
                 as_recorded: bool = True, out_dir: str | None = None, stem: str = "glass_map",
-                progress: bool = True, world: str | None = None, limit: int | None = None) -> ReplayResult:
+                progress: bool = True, world: str | None = None, limit: int | None = None,
+                seen: str | Path | None = None) -> ReplayResult:
     """Run the pose estimator and the glass mapper over a recording; export the maps to ``out_dir``.
 
-    world: a simulator world name/path to score the map against its blueprint (simulated recordings).
-    limit: stop after this many scans."""
+    world: a simulator world name/path to score the map against its blueprint (simulated recordings), with
+    the same rule as the demo; seen: the demo's seen-cells mask (default: ``seen_cells.npy`` beside the
+    recording, see :func:`seen_cells_for`). limit: stop after this many scans (>= 1)."""
     from runtime.processor import MappingProcessor
 
+    if limit is not None and limit < 1:
+        raise ValueError(f"limit must be >= 1 scan, got {limit}")
+    path = Path(path)
+    if path.suffix == ".mcap" and not path.is_dir():
+        from runtime.inputs import check_mcap
+
+        check_mcap(path)  # empty, not MCAP, or cut short: say so (and how to repair) instead of a partial replay
     cfg = config if config is not None else recorded_config(path)
     cfg.validate()
-    path = Path(path)
+    res = ReplayResult(path=str(path), source=source)
+    if (note := start_pose_note(path, cfg)) is not None:
+        res.notes.append(note)
     keep: set[bytes] | None = None
     if as_recorded and path.suffix == ".mcap" and path.is_file() and read_metadata(path):
         keep = processed_scans(path)
     proc = MappingProcessor(cfg.mapping)
-    res = ReplayResult(path=str(path), source=source)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -161,6 +197,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         bar = tqdm(desc=f"replay {path.name}", unit="scan", mininterval=0.5)
     pending: list[Odometry] = []
     first = last = None
+    unprocessed = 0
     t0 = time.perf_counter()
     try:
         for item in prefetch(iter_source(path, source)):
@@ -169,8 +206,10 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
                 res.odometry += 1
                 continue
             if keep is not None and scan_key(item) not in keep:
-                res.skipped += 1
-                continue  # the live run dropped this scan: its odometry goes to the next one
+                unprocessed += 1  # dropped by the live run, or after its end: known at the next kept scan
+                continue  # its odometry goes to the next scan
+            res.skipped += unprocessed
+            unprocessed = 0
             r = proc.process(item, pending)
             pending = []
             res.scans += 1
@@ -186,6 +225,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         if bar is not None:
             bar.close()
     res.wall_time = time.perf_counter() - t0
+    if limit is None or res.scans < limit:
+        res.after_end = unprocessed
     if res.scans == 0:
         raise ReplayInputError(f"{path}: no scans were processed")
     res.data_time = float(last - first) if first is not None else 0.0
@@ -197,7 +238,11 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         from glassmap.sim.world import load_world
         from runtime.evaluate import evaluate_map
 
-        res.error = evaluate_map(proc, load_world(world)).error
+        seen_path = seen_cells_for(path, seen)
+        mask = np.load(seen_path) if seen_path is not None else None
+        ev = evaluate_map(proc, load_world(world), seen=mask)
+        res.error = ev.error
+        res.seen_from = str(seen_path) if ev.seen_from == "simulator" else "map"
     res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
     return res
 
@@ -213,11 +258,12 @@ class ReplayJob:
     out_dir: str | None = None
     stem: str = "glass_map"
     world: str | None = None
+    seen: str | None = None
 
 
 def _run_job(job: ReplayJob) -> ReplayResult:
     res = replay_file(job.path, job.config, source=job.source, out_dir=job.out_dir, stem=job.stem,
-                      progress=False, world=job.world)
+                      progress=False, world=job.world, seen=job.seen)
     if hasattr(res, "_processor"):
         del res._processor  # type: ignore[attr-defined]  # not picklable cheaply, not needed remotely
     return res
@@ -273,7 +319,12 @@ def summarize(results: list[ReplayResult]) -> str:
     lines = []
     for r in results:
         lat = {k: 1e3 * float(np.median(v)) for k, v in r.stages.items()}
-        err = f", error {100 * r.error:.1f} %" if r.error is not None else ""
+        err = ""
+        if r.error is not None:
+            err = f", error {100 * r.error:.1f} % (per cell, paper rule; " + (
+                f"cells seen by the simulated laser from {r.seen_from})" if r.seen_from != "map" else
+                "no record of the cells the simulated laser saw: the cells the map observed stand in, so the "
+                "figure is not comparable with the demo's; pass --seen out/demo/seen_cells.npy)")
         lines.append(f"{r.path}: {r.scans} scans in {r.wall_time:.1f} s ({r.scans_per_second:.0f} scans/s, "
                      f"{r.speedup:.1f}x real time), median total {lat.get('total', float('nan')):.1f} ms/scan{err}")
     return "\n".join(lines)

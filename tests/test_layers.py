@@ -51,3 +51,11 @@ def test_codecs_are_sans_io(codec):
 def test_the_root_command_lives_in_the_top_layer():
     assert not (ROOT / "glassmap" / "cli.py").exists()
     assert 'glassmap = "runtime.cli:main"' in (ROOT / "pyproject.toml").read_text()
+
+
+@pytest.mark.parametrize("session", ["drivers/hokuyo/session.py", "drivers/pioneer/session.py"])
+def test_receive_sessions_are_sans_io(session):
+    """The receive sessions shared by the live clients and the raw replay read no clock and touch no link."""
+    names = _imports(ROOT / session)
+    io = {"asyncio", "socket", "serial", "serial_asyncio_fast", "selectors", "time", "drivers.transport"}
+    assert not names & io, f"{session} imports {sorted(names & io)}"

@@ -71,9 +71,11 @@ def _stream_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip", type=int, default=0, help="scans skipped between two sent, 0-9 (default 0)")
 
 
-def _client_kwargs(args) -> dict:
-    return dict(multi_echo=args.multi_echo, start_step=args.start, end_step=args.end, cluster=args.cluster,
-                skip=args.skip)
+def _settings(args):
+    from drivers.hokuyo.client import HokuyoSettings
+
+    return HokuyoSettings(multi_echo=args.multi_echo, start_step=args.start, end_step=args.end,
+                          cluster=args.cluster, skip=args.skip)
 
 
 def _fail(exc: BaseException) -> int:
@@ -93,10 +95,10 @@ def _run(main) -> int:
 
 
 def _probe(args) -> int:
-    from drivers.hokuyo.client import HokuyoClient
+    from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 
     async def run() -> None:
-        client = await HokuyoClient.connect(args.url, stream=False)
+        client = await HokuyoClient.connect(args.url, HokuyoSettings(stream=False))
         try:
             for title, fields in (("VV", client.version), ("PP", client.pp),
                                   ("II", client.status)):
@@ -119,7 +121,7 @@ def _stream(args) -> int:
     from drivers.hokuyo.client import HokuyoClient
 
     async def run() -> None:
-        async with await HokuyoClient.connect(args.url, **_client_kwargs(args)) as client:
+        async with HokuyoClient.connect(args.url, _settings(args)) as client:
             t0, n = time.monotonic(), 0
             with tqdm(total=args.scans, unit="scan", file=sys.stderr) as bar:
                 async for scan in client.scans():
@@ -141,7 +143,7 @@ def _record(args) -> int:
     from drivers.hokuyo.client import record
 
     async def run() -> None:
-        stats = await record(args.url, args.file, scans=args.scans, note=args.note, **_client_kwargs(args))
+        stats = await record(args.url, args.file, _settings(args), scans=args.scans, note=args.note)
         print(f"recorded {stats.received} scans to {args.file} (corrupted={stats.corrupted}, "
               f"reconnects={stats.reconnects})")
 

@@ -142,14 +142,16 @@ def _fail(msg: str) -> int:
 def _probe(args: argparse.Namespace) -> int:
     from drivers.errors import DriverError
     from drivers.pioneer.client import PioneerClient
+    from drivers.pioneer.errors import HandshakeError
 
     if args.sips < 0:
         return _fail("--sips must be >= 0")
 
     async def main() -> int:
-        async with PioneerClient.connect(args.url, settings=_settings(args, read_config=args.config)) as base:
+        async with PioneerClient.connect(args.url, _settings(args, read_config=args.config)) as base:
             info, m = base.info, base.model
-            assert info is not None and m is not None
+            if info is None or m is None:
+                raise HandshakeError(f"{args.url}: connected without a SYNC2 reply")
             print(f"name: {info.name}\nclass: {info.robot_class}\nsubclass: {info.subclass}")
             print(f"conversion: {m.dist_conv} mm/unit, {m.angle_conv} rad/unit, DiffConv {m.diff_conv}")
             if args.config:
@@ -160,7 +162,8 @@ def _probe(args: argparse.Namespace) -> int:
                     if n >= args.sips:
                         break
                     sip, st = base.last_sip, base.state
-                    assert sip is not None and st is not None
+                    if sip is None or st is None:  # odometry comes from a SIP: both are set by then
+                        continue
                     print(f"SIP 0x{0x33 if sip.moving else 0x32:02x} x={odom.x:+.3f} m y={odom.y:+.3f} m "
                           f"yaw={math.degrees(odom.yaw):+7.2f} deg v={odom.v:+.3f} m/s "
                           f"omega={math.degrees(odom.omega):+6.1f} deg/s battery={st.battery_volts:.1f} V "
@@ -189,7 +192,7 @@ def _drive(args: argparse.Namespace) -> int:
     settings = _settings(args, max_v=args.max_speed, max_omega=math.radians(args.max_turn_rate))
 
     async def main() -> int:
-        async with PioneerClient.connect(args.url, enable_motors=True, settings=settings) as base:
+        async with PioneerClient.connect(args.url, settings, enable_motors=True) as base:
             resume = args.continue_after_reconnect
             try:
                 if args.teleop:
@@ -204,7 +207,8 @@ def _drive(args: argparse.Namespace) -> int:
                 raise
             await base.stop()
             odom = base.latest
-            assert odom is not None
+            if odom is None:  # connect waits for the first SIP, so this does not happen
+                return _fail("no odometry from the robot")
             print(f"final odometry: x={odom.x:+.3f} m y={odom.y:+.3f} m yaw={math.degrees(odom.yaw):+.2f} deg "
                   f"(sigma_x={math.sqrt(odom.covariance[0, 0]):.3f} m, "
                   f"sigma_yaw={math.degrees(math.sqrt(odom.covariance[2, 2])):.2f} deg)")
@@ -360,7 +364,12 @@ def _emulate(args: argparse.Namespace) -> int:
         return _fail(str(exc))
 
     async def main() -> int:
-        url = await (emu.serve_tcp(args.tcp) if args.tcp is not None else emu.serve_pty())
+        try:
+            url = await (emu.serve_tcp(args.tcp) if args.tcp is not None else emu.serve_pty())
+        except OSError as exc:  # e.g. the port is in use
+            await emu.close()
+            where = f"tcp port {args.tcp}" if args.tcp is not None else "a pseudo-terminal"
+            return _fail(f"cannot serve on {where}: {exc.strerror or exc}")
         print(url, flush=True)
         print("emulating a Pioneer 3-DX; Ctrl-C to stop", file=sys.stderr)
         try:

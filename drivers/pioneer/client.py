@@ -2,11 +2,13 @@
 
 Use::
 
-    async with PioneerClient.connect("serial:///dev/ttyUSB0", enable_motors=True) as base:
+    async with PioneerClient.connect("serial:///dev/ttyUSB0", PioneerSettings(max_v=0.4),
+                                     enable_motors=True) as base:
         async for odom in base.odometry():          # glassmap.types.Odometry, odom frame, m / rad
             await base.set_velocity(0.2, 0.0)      # m/s, rad/s; call again at least every command_timeout
 
-or ``base = await PioneerClient.connect(url)`` ... ``await base.close()``.
+or ``base = await PioneerClient.connect(url, settings)`` ... ``await base.close()``. The receive side
+(packets, SIPs, odometry) is a :class:`~drivers.pioneer.session.PioneerSession`, shared with the raw replay.
 
 What the client guarantees:
 - Connect: SYNC0/1/2 with per-step timeouts and bounded retries; a robot still open from an earlier
@@ -34,19 +36,20 @@ import os
 import time
 import weakref
 from collections.abc import AsyncIterator, Callable, Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from urllib.parse import parse_qs, urlparse
 
 from glassmap.types import Odometry
 
+from drivers.connecting import Connecting
 from drivers.errors import DriverError, TransportError
 from drivers.pioneer.errors import (ClientClosedError, DecodeError, HandshakeError, HandshakeTimeout,
                                     LinkLostError)
-from drivers.pioneer.odometry import CovarianceModel, OdometryTracker, PioneerModel, model_for
-from drivers.pioneer.packets import (HOSTBAUD_CODES, SIP_IDS, SYNC0, SYNC1, SYNC2, Cmd, Packet, PacketParser,
-                                     ParserStats, PacketType, build_packet, command)
-from drivers.pioneer.sip import (ConfigPacket, EncoderPacket, StandardSIP, SyncReply, UnknownPacket,
-                                 decode_config, decode_packet, decode_sync2)
+from drivers.pioneer.odometry import CovarianceModel, PioneerModel
+from drivers.pioneer.packets import (HOSTBAUD_CODES, SIP_IDS, SYNC0, SYNC1, SYNC2, Cmd, Packet, PacketType,
+                                     build_packet, command)
+from drivers.pioneer.session import BaseState, PioneerSession, PioneerStats
+from drivers.pioneer.sip import ConfigPacket, EncoderPacket, StandardSIP, SyncReply, decode_config, decode_sync2
 from drivers.transport import Tap, Transport, open_transport
 
 log = logging.getLogger(__name__)
@@ -102,60 +105,9 @@ class PioneerSettings:
         if self.high_baud is not None and self.high_baud not in HOSTBAUD_CODES:
             raise ValueError(f"high_baud must be one of {sorted(HOSTBAUD_CODES)}, got {self.high_baud}")
 
-    def t(self, seconds: float) -> float:
-        """A configured time in real seconds (divided by time_scale)."""
-        return seconds / self.time_scale
-
-
-@dataclass(frozen=True)
-class BaseState:
-    """Latest state of the base from the SIPs. stamp: host time (s); battery in volts; sonar in metres."""
-
-    stamp: float
-    battery_volts: float
-    motors_enabled: bool
-    estop: bool
-    moving: bool
-    left_stall: bool
-    right_stall: bool
-    front_bumpers: int
-    rear_bumpers: int
-    sonar: dict[int, float]
-
-    @property
-    def stalled(self) -> bool:
-        return self.left_stall or self.right_stall
-
-    @property
-    def bumped(self) -> bool:
-        return bool(self.front_bumpers or self.rear_bumpers)
-
-
-@dataclass
-class PioneerStats:
-    """Counters since the client was created (over all links).
-
-    tx_packets counts commands sent on open links (handshake packets are not counted); keepalives the
-    packets sent only to keep the robot's watchdog quiet; command_timeouts the stops the client made because
-    set_velocity went quiet; still_open_recoveries the handshakes that found the robot open and closed it.
-    """
-
-    sips: int = 0
-    packets: int = 0
-    unknown_packets: int = 0
-    decode_errors: int = 0
-    bad_checksum: int = 0
-    bad_length: int = 0
-    dropped_bytes: int = 0
-    parser_timeouts: int = 0
-    tx_packets: int = 0
-    keepalives: int = 0
-    command_timeouts: int = 0
-    link_losses: int = 0
-    reconnects: int = 0
-    handshake_retries: int = 0
-    still_open_recoveries: int = 0
-    odometry_dropped: int = 0
+    def host_seconds(self, robot_seconds: float) -> float:
+        """A time in the robot's (emulated) seconds as host seconds: divided by time_scale."""
+        return robot_seconds / self.time_scale
 
 
 def _silence_hint(url: str) -> str:
@@ -181,25 +133,6 @@ def _serial_url_with_baud(url: str, baud: int | None = None) -> str:
     return f"serial://{u.path}?baud={baud}"
 
 
-class _Connecting:
-    """What :meth:`PioneerClient.connect` returns: await it, or use it as an async context manager."""
-
-    def __init__(self, factory: Callable[[], object]) -> None:
-        self._factory = factory
-        self._client: PioneerClient | None = None
-
-    def __await__(self):
-        return self._factory().__await__()  # type: ignore[attr-defined]
-
-    async def __aenter__(self) -> PioneerClient:
-        self._client = await self._factory()  # type: ignore[misc]
-        return self._client
-
-    async def __aexit__(self, *exc: object) -> None:
-        if self._client is not None:
-            await self._client.close()
-
-
 _live_clients: weakref.WeakSet[PioneerClient] = weakref.WeakSet()
 
 
@@ -212,24 +145,15 @@ def _stop_all_at_exit() -> None:  # last resort when the event loop died without
 class PioneerClient:
     """Async client of one Pioneer base. Create it with :meth:`connect`."""
 
-    def __init__(self, url: str, settings: PioneerSettings, taps: Iterable[Tap] = ()) -> None:
+    def __init__(self, url: str, settings: PioneerSettings | None = None, taps: Iterable[Tap] = ()) -> None:
         self.url = url
-        self.settings = settings
+        self.settings = s = settings or PioneerSettings()
         self.taps: list[Tap] = list(taps)
         self.stats = PioneerStats()
-        self.info: SyncReply | None = None
-        self.model: PioneerModel | None = None
-        self.config: ConfigPacket | None = None
-        self.encoders: EncoderPacket | None = None
-        self.last_sip: StandardSIP | None = None
-        self.latest: Odometry | None = None
+        self.session = PioneerSession(self.stats, model=s.model, covariance=s.covariance, time_scale=s.time_scale,
+                                      inter_byte_timeout=s.inter_byte_timeout, name=url)
         self.odometry_callbacks: list[Callable[[Odometry], None]] = []
-        self._state: BaseState | None = None
-        self._sonar: dict[int, float] = {}
-        self._tracker: OdometryTracker | None = None
         self._transport: Transport | None = None
-        self._parser: PacketParser | None = None
-        self._parser_totals = ParserStats()
         self._pending: list[Packet] = []  # packets read during the handshake, not yet handled
         self._held: list[Packet] = []  # packets read while waiting for CONFIG
         self._subscribers: set[asyncio.Queue[Odometry | None]] = set()
@@ -247,20 +171,21 @@ class PioneerClient:
         self._send_lock = asyncio.Lock()
         self._tasks: list[asyncio.Task] = []
         self._reader_task: asyncio.Task | None = None
+        self._closer: asyncio.Task | None = None  # closes a transport the watchdog found dead
 
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
-    def connect(cls, url: str, *, enable_motors: bool = False, settings: PioneerSettings | None = None,
-                taps: Iterable[Tap] = (), **overrides: object) -> _Connecting:
+    def connect(cls, url: str, settings: PioneerSettings | None = None, *, taps: Iterable[Tap] = (),
+                enable_motors: bool = False) -> Connecting[PioneerClient]:
         """Connect to the base at ``url`` (``serial:///dev/ttyUSB0[?baud=9600]`` or ``tcp://host:8101``).
 
-        ``overrides`` replace fields of ``settings`` (e.g. ``max_v=0.3``). Raises HandshakeError (robot
-        does not answer or answers wrongly), TransportError (cannot open the link), ValueError (bad URL).
+        Await the result, or ``async with`` it to have the client closed (robot stopped) on exit. Raises
+        HandshakeError (robot does not answer or answers wrongly), TransportError (cannot open the link),
+        ValueError (bad URL).
         """
-        s = replace(settings or PioneerSettings(), **overrides) if overrides else (settings or PioneerSettings())
 
         async def factory() -> PioneerClient:
-            client = cls(url, s, taps)
+            client = cls(url, settings, taps)
             try:
                 await client._start(enable_motors)
             except BaseException:
@@ -268,7 +193,7 @@ class PioneerClient:
                 raise
             return client
 
-        return _Connecting(factory)
+        return Connecting(factory)
 
     async def _start(self, enable_motors: bool) -> None:
         await self._open_link()
@@ -276,7 +201,7 @@ class PioneerClient:
         self._tasks = [self._reader_task, asyncio.create_task(self._control_loop(), name="pioneer-control")]
         _live_clients.add(self)
         try:
-            await asyncio.wait_for(self._first_sip.wait(), self.settings.t(self.settings.open_timeout))
+            await asyncio.wait_for(self._first_sip.wait(), self.settings.host_seconds(self.settings.open_timeout))
         except asyncio.TimeoutError:
             raise HandshakeError(
                 f"{self.url}: robot accepted OPEN but sent no SIP within {self.settings.open_timeout:.1f} s") from None
@@ -292,7 +217,36 @@ class PioneerClient:
     @property
     def state(self) -> BaseState | None:
         """Battery, motors, e-stop, stall, bumpers, sonar from the latest SIP (None before the first)."""
-        return self._state
+        return self.session.state
+
+    @property
+    def info(self) -> SyncReply | None:
+        """The robot's SYNC2 reply (name, class, subclass) of the current or last link."""
+        return self.session.info
+
+    @property
+    def model(self) -> PioneerModel | None:
+        """The conversion factors in use."""
+        return self.session.model
+
+    @property
+    def config(self) -> ConfigPacket | None:
+        """The newest CONFIG packet (``read_config``, or asked for by a tool)."""
+        return self.session.config
+
+    @property
+    def encoders(self) -> EncoderPacket | None:
+        """The newest ENCODER packet (see :meth:`request_encoders`)."""
+        return self.session.encoders
+
+    @property
+    def last_sip(self) -> StandardSIP | None:
+        return self.session.last_sip
+
+    @property
+    def latest(self) -> Odometry | None:
+        """The newest odometry (for polling)."""
+        return self.session.latest
 
     @property
     def setpoint(self) -> tuple[float, float]:
@@ -459,29 +413,22 @@ class PioneerClient:
     async def _open_link(self) -> None:
         """Open the transport, handshake, OPEN, (CONFIG), (HOSTBAUD). Raises on failure."""
         s = self.settings
-        transport = await open_transport(_serial_url_with_baud(self.url), timeout=s.t(5.0))
+        transport = await open_transport(_serial_url_with_baud(self.url), timeout=s.host_seconds(5.0))
         for tap in self.taps:
             transport.taps.append(tap)
-        self._parser = PacketParser(inter_byte_timeout=s.inter_byte_timeout)
+        self.session.new_link()
         self._pending = []
         try:
             info = await self._handshake(transport)
-            model = model_for(s.model or info.subclass, info.robot_class)
-            if self.model is not None and model != self.model:
-                log.warning("%s: robot changed from %s to %s; odometry re-anchors", self.url,
-                            self.model.subclass, model.subclass)
-                self._tracker = None
-            self.info, self.model = info, model
-            if self._tracker is None:
-                self._tracker = OdometryTracker(model, s.covariance, s.time_scale)
+            self.session.connected(info)
             await transport.write(command(Cmd.OPEN))
             if s.read_config:
                 await transport.write(command(Cmd.CONFIG))
-                self.config = await self._await_config(transport)
+                self.session.config = await self._await_config(transport)
             if s.high_baud is not None and transport.url.startswith("serial:"):
                 await self._switch_baud(transport, s.high_baud)
         except BaseException:
-            self._absorb_parser_stats()
+            self.session.end_link()
             await transport.close()
             raise
         self._transport = transport
@@ -494,7 +441,6 @@ class PioneerClient:
 
     async def _recv(self, transport: Transport, timeout: float) -> Packet | None:
         """Next packet within ``timeout`` s, or None."""
-        assert self._parser is not None
         deadline = time.monotonic() + timeout
         while not self._pending:
             left = deadline - time.monotonic()
@@ -504,7 +450,7 @@ class PioneerClient:
                 data = await asyncio.wait_for(transport.read(), left)
             except asyncio.TimeoutError:
                 return None
-            self._pending.extend(self._parser.feed(data, time.monotonic()))
+            self._pending.extend(self.session.feed(data, transport.last_read_time))  # the taps' time
         return self._pending.pop(0)
 
     async def _drain(self, transport: Transport, quiet: float, limit: float) -> None:
@@ -518,7 +464,7 @@ class PioneerClient:
 
     async def _handshake(self, transport: Transport) -> SyncReply:
         s = self.settings
-        step_timeout = s.t(s.handshake_timeout)
+        step_timeout = s.host_seconds(s.handshake_timeout)
         heard_anything = False
         baud_cycled = False
         for attempt in range(s.handshake_tries):
@@ -540,7 +486,7 @@ class PioneerClient:
                     log.info("%s: robot still open from an earlier session: CLOSE and start again", self.url)
                     self.stats.still_open_recoveries += 1
                     await transport.write(command(Cmd.CLOSE))
-                    await self._drain(transport, quiet=2 * step_timeout, limit=s.t(3.0))
+                    await self._drain(transport, quiet=2 * step_timeout, limit=s.host_seconds(3.0))
                     break
                 if pkt.pid == step and step < 2 and not pkt.payload:
                     step += 1
@@ -573,7 +519,7 @@ class PioneerClient:
 
     async def _await_config(self, transport: Transport) -> ConfigPacket | None:
         s = self.settings
-        deadline = time.monotonic() + s.t(s.open_timeout)
+        deadline = time.monotonic() + s.host_seconds(s.open_timeout)
         while (left := deadline - time.monotonic()) > 0:
             pkt = await self._recv(transport, left)
             if pkt is None:
@@ -596,24 +542,6 @@ class PioneerClient:
         # at `baud` is reached by the CLOSE-at-every-speed step of the handshake.
         log.info("%s: switched to %d baud", self.url, baud)
 
-    def _absorb_parser_stats(self) -> None:
-        p = self._parser
-        if p is None:
-            return
-        tot = self._parser_totals
-        for name in ("bytes_in", "packets", "dropped_bytes", "bad_checksum", "bad_length", "timeouts"):
-            setattr(tot, name, getattr(tot, name) + getattr(p.stats, name))
-        self._parser = None
-        self._sync_parser_stats()
-
-    def _sync_parser_stats(self) -> None:
-        tot, cur = self._parser_totals, (self._parser.stats if self._parser is not None else ParserStats())
-        st = self.stats
-        st.bad_checksum = tot.bad_checksum + cur.bad_checksum
-        st.bad_length = tot.bad_length + cur.bad_length
-        st.dropped_bytes = tot.dropped_bytes + cur.dropped_bytes
-        st.parser_timeouts = tot.timeouts + cur.timeouts
-
     def _link_lost(self, exc: BaseException) -> None:
         if not self._link_up:
             return
@@ -623,8 +551,8 @@ class PioneerClient:
         self.stats.link_losses += 1
         if self._reader_task is not None and self._reader_task is not asyncio.current_task():
             t = self._transport
-            if t is not None:
-                asyncio.ensure_future(t.close())
+            if t is not None:  # the reader task sees the closed link and reconnects
+                self._closer = asyncio.get_running_loop().create_task(t.close())
 
     async def _supervise(self) -> None:
         """Read packets while the link is up; on a loss, reconnect with back-off (if enabled)."""
@@ -654,35 +582,34 @@ class PioneerClient:
         s = self.settings
         while not self._closing:
             t = self._transport
-            assert t is not None and self._parser is not None
+            if t is None:
+                raise RuntimeError(f"{self.url}: link supervisor started without a link")
             backlog, self._held, self._pending = self._held + self._pending, [], []
             for pkt in backlog:
                 self._on_packet(pkt)
             try:
                 while True:
                     data = await t.read()
-                    now = time.monotonic()
-                    for pkt in self._parser.feed(data, now):
+                    for pkt in self.session.feed(data, t.last_read_time):  # the time the taps recorded
                         self._on_packet(pkt)
-                    self._sync_parser_stats()
             except TransportError as exc:
                 self._link_lost(exc)
                 await t.close()
             if self._closing:
                 return
-            self._absorb_parser_stats()
+            self.session.end_link()
             if not s.reconnect:
                 self._failure = LinkLostError(f"{self.url}: link lost and reconnect is disabled")
                 self._end_streams()
                 return
-            delay = s.t(s.backoff_initial)
+            delay = s.host_seconds(s.backoff_initial)
             while not self._closing:
                 await asyncio.sleep(delay)
                 try:
                     await self._open_link()
                 except (DriverError, OSError, ValueError) as exc:
                     log.info("%s: reconnect failed (%s); next try in %.2f s", self.url, exc, delay)
-                    delay = min(2 * delay, s.t(s.backoff_max))
+                    delay = min(2 * delay, s.host_seconds(s.backoff_max))
                     continue
                 self.stats.reconnects += 1
                 if self._motors_wanted:
@@ -694,24 +621,24 @@ class PioneerClient:
         """Keep-alive, command timeout and the SIP watchdog."""
         s = self.settings
         periods = [s.keepalive, s.sip_timeout] + ([s.command_timeout] if s.command_timeout else [])
-        tick = s.t(min(periods) / 6.0)
+        tick = s.host_seconds(min(periods) / 6.0)
         while not self._closing:
             await asyncio.sleep(tick)
             if not self._link_up:
                 continue
             now = time.monotonic()
             try:
-                if now - self._last_rx > s.t(s.sip_timeout):
+                if now - self._last_rx > s.host_seconds(s.sip_timeout):
                     self._link_lost(TransportError(f"no packet from the robot for {s.sip_timeout:.1f} s"))
                     continue
                 if (s.command_timeout is not None and self._setpoint != (0, 0)
-                        and now - self._last_cmd > s.t(s.command_timeout)):
+                        and now - self._last_cmd > s.host_seconds(s.command_timeout)):
                     log.warning("%s: no velocity command for %.2f s: stopping the robot", self.url,
                                 s.command_timeout)
                     self.stats.command_timeouts += 1
                     self._setpoint = (0, 0)
                     await self._send_setpoint()
-                elif now - self._last_tx >= s.t(s.keepalive):
+                elif now - self._last_tx >= s.host_seconds(s.keepalive):
                     self.stats.keepalives += 1
                     if self._setpoint != (0, 0):
                         await self._send_setpoint()
@@ -722,35 +649,10 @@ class PioneerClient:
 
     # -- receiving -------------------------------------------------------------------------------------
     def _on_packet(self, pkt: Packet) -> None:
-        self.stats.packets += 1
         self._last_rx = time.monotonic()
-        try:
-            msg = decode_packet(pkt)
-        except DecodeError as exc:
-            self.stats.decode_errors += 1
-            log.debug("%s: %s", self.url, exc)
+        odom = self.session.handle(pkt, self._last_rx)
+        if odom is None:
             return
-        if isinstance(msg, StandardSIP):
-            self._on_sip(msg, pkt.stamp if pkt.stamp is not None else self._last_rx)
-        elif isinstance(msg, EncoderPacket):
-            self.encoders = msg
-        elif isinstance(msg, ConfigPacket):
-            self.config = msg
-        elif isinstance(msg, UnknownPacket):
-            self.stats.unknown_packets += 1
-
-    def _on_sip(self, sip: StandardSIP, stamp: float) -> None:
-        assert self._tracker is not None and self.model is not None
-        self.stats.sips += 1
-        self.last_sip = sip
-        for idx, rng in sip.sonar:
-            self._sonar[idx] = rng * self.model.range_conv / 1000.0
-        self._state = BaseState(stamp=stamp, battery_volts=sip.battery_volts, motors_enabled=sip.motors_enabled,
-                                estop=sip.estop, moving=sip.moving, left_stall=sip.left_stall,
-                                right_stall=sip.right_stall, front_bumpers=sip.front_bumpers,
-                                rear_bumpers=sip.rear_bumpers, sonar=dict(self._sonar))
-        odom = self._tracker.update(sip, stamp)
-        self.latest = odom
         self._first_sip.set()
         for q in list(self._subscribers):
             self._offer(q, odom)

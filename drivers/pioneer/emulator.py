@@ -201,6 +201,7 @@ class PioneerEmulator:
         self._writer: asyncio.StreamWriter | None = None
         self._conn_task: asyncio.Task | None = None
         self._tick_task: asyncio.Task | None = None
+        self._attach_task: asyncio.Task | None = None  # re-attaching the pty after a link loss
         self._endpoint: PtyEndpoint | None = None
         self._pty_dir = ""
         self._server: asyncio.base_events.Server | None = None
@@ -284,7 +285,7 @@ class PioneerEmulator:
     async def close(self) -> None:
         """Stop serving (the host sees the link drop)."""
         self._closed = True
-        for task in (self._tick_task, self._conn_task):
+        for task in (self._tick_task, self._conn_task, self._attach_task):
             if task is not None:
                 task.cancel()
         self._drop_connection()
@@ -304,7 +305,8 @@ class PioneerEmulator:
 
     # -- links -----------------------------------------------------------------------------------------
     async def _attach_pty(self) -> None:
-        assert self._endpoint is not None
+        if self._endpoint is None:
+            raise RuntimeError("the emulator has no pty to attach (serve_pty() was not called)")
         reader, writer = await self._endpoint.open()
         self._start_connection(reader, writer)
 
@@ -313,7 +315,7 @@ class PioneerEmulator:
             return
         self._endpoint.reopen()
         self._link_down_until = None
-        asyncio.ensure_future(self._attach_pty())
+        self._attach_task = asyncio.ensure_future(self._attach_pty())
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if self._link_down_until is not None and self.now() < self._link_down_until:

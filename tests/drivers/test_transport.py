@@ -5,7 +5,7 @@ import asyncio
 import pytest
 
 from drivers.capture import Capture, CaptureRecorder, Chunk
-from drivers.errors import TransportClosed, TransportError
+from drivers.errors import InvalidURL, TransportClosed, TransportError
 from drivers.transport import TransportURL, open_transport
 from tests.fakes.replay import replay_over_pty, replay_over_tcp
 
@@ -17,6 +17,22 @@ def test_url_parsing():
     for bad in ("tcp://host", "udp://x:1", "serial://", "serial:///dev/x?baud=fast"):
         with pytest.raises(ValueError):
             TransportURL.parse(bad)
+
+
+@pytest.mark.parametrize("url, says", [
+    ("foo", "unsupported device URL 'foo'"),
+    ("http://x", "unsupported device URL 'http://x'"),
+    ("tcp://host:notaport", "'tcp://host:notaport'.*notaport"),
+    ("tcp://host:99999", "out of range"),
+    ("tcp://host", "expected tcp://HOST:PORT"),
+    ("bogus://x", "unsupported device URL"),
+    ("serial:///dev/ttyUSB0?baud=abc", "baud must be a whole number"),
+    ("serial://dev/ttyUSB0", "three slashes"),
+    ("serial:///dev/ttyUSB0?speed=9600", "unknown option 'speed'"),
+])
+def test_bad_urls_are_invalid_url_errors_that_say_what_is_wrong(url, says):
+    with pytest.raises(InvalidURL, match=says):
+        TransportURL.parse(url)
 
 
 async def test_open_refused_gives_transport_error():

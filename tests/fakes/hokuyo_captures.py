@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.capture import Capture, CaptureRecorder
-from drivers.hokuyo.client import HokuyoClient
+from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 from drivers.hokuyo.emulator import Faults, HokuyoEmulator, canned_scan_source, room_scan_source
 
 CAPTURE_DIR = Path(__file__).parent / "captures"
@@ -53,7 +53,7 @@ async def record_capture(name: str) -> Capture:
     emu = HokuyoEmulator(make_source(), faults=faults, clock_start_ms=1_234_567)
     url = await emu.serve_tcp()
     rec = CaptureRecorder("hokuyo")
-    client = await HokuyoClient.connect(url, taps=[rec], **settings)
+    client = await HokuyoClient.connect(url, HokuyoSettings(**settings), taps=[rec])
     scans = []
     async for scan in client.scans():
         scans.append(scan)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.capture import CaptureRecorder
-from drivers.hokuyo.client import HokuyoClient
+from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 from drivers.hokuyo.emulator import Faults, HokuyoEmulator, canned_scan_source, ranges_to_codes, room_scan_source
 from tests.helpers import eventually
 
@@ -85,7 +85,7 @@ async def test_reconnects_after_cable_pull_and_reboot_with_the_same_stream(link,
     faults = Faults(disconnect_at=25) if event == "disconnect" else Faults(reboot_at=25)
     emu, url = await serve(link, faults=faults, boot_time=1.0, clock_start_ms=5_000_000)
     rec = CaptureRecorder("hokuyo")
-    client = await HokuyoClient.connect(url, taps=[rec], cluster=2, start_step=100, end_step=980)
+    client = await HokuyoClient.connect(url, HokuyoSettings(cluster=2, start_step=100, end_step=980), taps=[rec])
     scans = await take(client, 60)
     await client.close()
     assert client.stats.reconnects == 1
@@ -101,7 +101,7 @@ async def test_reconnects_after_cable_pull_and_reboot_with_the_same_stream(link,
 
 async def test_watchdog_notices_a_silent_sensor():
     emu, url = await serve("tcp", faults=Faults(silence_at=20, silence_s=4.0))
-    client = await HokuyoClient.connect(url, watchdog=0.3, timeout=0.3)
+    client = await HokuyoClient.connect(url, HokuyoSettings(watchdog=0.3, timeout=0.3))
     scans = await take(client, 50)
     await client.close()
     assert client.stats.watchdog_trips >= 1 and client.stats.reconnects >= 1
@@ -122,7 +122,7 @@ async def test_cancelled_consumer_still_stops_the_sensor():
     emu, url = await serve("tcp")
 
     async def consumer():
-        async with await HokuyoClient.connect(url) as client:
+        async with HokuyoClient.connect(url) as client:
             async for _ in client.scans():
                 pass
 
@@ -138,7 +138,7 @@ async def test_cancelled_consumer_still_stops_the_sensor():
 
 async def test_slow_consumer_drops_oldest_and_counts_them():
     emu, url = await serve("tcp")
-    client = await HokuyoClient.connect(url, queue_size=4)
+    client = await HokuyoClient.connect(url, HokuyoSettings(queue_size=4))
     await eventually(lambda: client.stats.received >= 30, what="30 scans received")
     scans = await take(client, 4)
     await client.close()
@@ -155,7 +155,7 @@ async def test_values_geometry_and_multi_echo_match_the_source():
     r[7, 0], r[8, 0] = np.inf, np.nan
     inten = np.column_stack([rng.uniform(0, 9000, 1081), np.full(1081, 500.0)])
     emu, url = await serve("tcp", source=canned_scan_source(r[None], inten[None]))
-    async with await HokuyoClient.connect(url, multi_echo=True) as client:
+    async with HokuyoClient.connect(url, HokuyoSettings(multi_echo=True)) as client:
         (scan,) = await take(client, 1)
     g = scan.geometry
     assert g.n_beams == 1081 and g.angle_min == pytest.approx(-3 * math.pi / 4)
@@ -176,9 +176,9 @@ async def test_values_geometry_and_multi_echo_match_the_source():
 async def test_bad_step_range_is_a_value_error():
     emu, url = await serve("tcp")
     with pytest.raises(ValueError, match="outside"):
-        await HokuyoClient.connect(url, start_step=0, end_step=2000)
+        await HokuyoClient.connect(url, HokuyoSettings(start_step=0, end_step=2000))
     with pytest.raises(ValueError):
-        HokuyoClient(url, skip=12)
+        HokuyoSettings(skip=12)
     await emu.close()
 
 
@@ -186,7 +186,7 @@ async def test_without_reconnect_a_lost_link_ends_the_scans_with_the_error():
     from drivers.errors import TransportClosed
 
     emu, url = await serve("tcp", faults=Faults(disconnect_at=10))
-    client = await HokuyoClient.connect(url, reconnect=False)
+    client = await HokuyoClient.connect(url, HokuyoSettings(reconnect=False))
     with pytest.raises(TransportClosed):
         await take(client, 1000)
     await client.close()
@@ -197,7 +197,7 @@ async def test_without_reconnect_a_silent_sensor_raises_sensor_silent():
     from drivers.hokuyo.errors import SensorSilent
 
     emu, url = await serve("tcp", faults=Faults(silence_at=10, silence_s=8.0))
-    client = await HokuyoClient.connect(url, reconnect=False, watchdog=0.3)
+    client = await HokuyoClient.connect(url, HokuyoSettings(reconnect=False, watchdog=0.3))
     with pytest.raises(SensorSilent, match="watchdog"):
         await take(client, 1000)
     await client.close()

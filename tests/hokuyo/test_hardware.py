@@ -23,7 +23,7 @@ def laser_url(request):
 
 
 async def test_real_sensor_streams_consistent_scans(laser_url):
-    async with await HokuyoClient.connect(laser_url) as client:
+    async with HokuyoClient.connect(laser_url) as client:
         scans = []
         async for scan in client.scans():
             scans.append(scan)

@@ -60,7 +60,7 @@ async def test_hokuyolx_reads_the_same_values_as_our_client():
     stamps = [t for _, t, _ in stream]
     assert np.diff(stamps).tolist() == [25, 25]
 
-    async with await HokuyoClient.connect(url) as client:
+    async with HokuyoClient.connect(url) as client:
         async for ours in client.scans():
             break
     assert np.array_equal(np.rint(ours.ranges[np.isfinite(ours.ranges)] * 1000), single[:, 0][np.isfinite(ours.ranges)])

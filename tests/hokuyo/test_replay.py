@@ -10,7 +10,7 @@ import json
 import pytest
 
 from drivers.capture import Capture
-from drivers.hokuyo.client import HokuyoClient
+from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 from drivers.hokuyo.scip import ScanReply, ScipParser
 from tests.fakes.hokuyo_captures import CAPTURE_DIR, CAPTURES, stamps_of
 from tests.fakes.replay import replay_over_pty, replay_over_tcp
@@ -26,7 +26,7 @@ async def replay_session(name: str, link: str, realtime: bool = False):
         url = f"serial://{path}"
     else:
         url, replayer, server = await replay_over_tcp(cap, realtime=realtime)
-    client = await HokuyoClient.connect(url, reconnect=False, **meta["settings"])
+    client = await HokuyoClient.connect(url, HokuyoSettings(reconnect=False, **meta["settings"]))
     scans = []
     async for scan in client.scans():
         scans.append(scan)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.hokuyo.bench import make_messages, run_bench
-from drivers.hokuyo.client import HokuyoClient
+from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 from drivers.hokuyo.emulator import HokuyoEmulator, room_scan_source, sim_scan_source
 
 pytestmark = pytest.mark.timeout(60)
@@ -22,7 +22,7 @@ async def test_simulated_world_scans_reach_the_client_unchanged():
     pose = np.asarray(world.start_pose, float)
     emu = HokuyoEmulator(sim_scan_source(world, lambda t: pose, seed=3), time_scale=2.0)
     url = await emu.serve_tcp()
-    async with await HokuyoClient.connect(url, multi_echo=True) as client:
+    async with HokuyoClient.connect(url, HokuyoSettings(multi_echo=True)) as client:
         async for scan in client.scans():
             break
     await emu.close()

@@ -136,10 +136,10 @@ async def test_emulate_serves_until_ctrl_c():
 
 FORGETFUL = """
 import asyncio, sys
-from drivers.pioneer.client import PioneerClient
+from drivers.pioneer.client import PioneerClient, PioneerSettings
 
 async def main(url):
-    base = await PioneerClient.connect(url, enable_motors=True, time_scale=float(sys.argv[2]))
+    base = await PioneerClient.connect(url, PioneerSettings(time_scale=float(sys.argv[2])), enable_motors=True)
     for _ in range(30):
         await base.set_velocity(0.3, 0.0)
         await asyncio.sleep(0.02)

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from drivers.pioneer.client import PioneerClient
+from drivers.pioneer.client import PioneerClient, PioneerSettings
 from drivers.pioneer.errors import ClientClosedError, HandshakeTimeout, LinkLostError, UnsupportedRobotError
 from drivers.pioneer.packets import SYNC0, SYNC1, SYNC2, Cmd, PacketParser, build_packet, command
 from drivers.pioneer.sip import SyncReply, decode_sip
@@ -74,7 +74,7 @@ async def test_drive_a_square_and_read_back_a_consistent_pose(emulator_factory, 
         assert_pose_matches_controller(odom, emu, mm)
         # the square closes up to the simulator's odometry error and the controller's overshoot
         assert math.hypot(odom.x, odom.y) < 0.1
-        tr = base._tracker
+        tr = base.session.tracker
         assert 1.58 < tr.distance < 1.8 and 2 * math.pi - 0.05 < tr.rotation < 2 * math.pi + 1.0
         assert abs(odom.yaw) < math.radians(5)
         # covariance has grown with 2 m and a full turn
@@ -96,7 +96,7 @@ async def test_odometry_across_the_position_wrap_live(emulator_factory, start, d
         await settle(base, emu)
         assert_pose_matches_controller(base.latest, emu, 0.485)
         assert base.latest.x == pytest.approx(start + distance, abs=0.05)
-        assert base._tracker.max_step_units < 200  # no 15/16-bit jump was integrated
+        assert base.session.tracker.max_step_units < 200  # no 15/16-bit jump was integrated
 
 
 async def test_simulator_deviations_are_handled(emulator_factory):
@@ -240,7 +240,7 @@ async def test_silent_port_gives_up_after_bounded_retries(tmp_path):
     ep = PtyEndpoint(str(tmp_path))
     try:
         with pytest.raises(HandshakeTimeout, match="no answer to SYNC0 after 3 tries"):
-            await PioneerClient.connect(f"serial://{ep.path}", handshake_tries=3, handshake_timeout=0.1)
+            await PioneerClient.connect(f"serial://{ep.path}", PioneerSettings(handshake_tries=3, handshake_timeout=0.1))
     finally:
         ep.close()
 
@@ -327,7 +327,7 @@ async def test_emulator_obeys_vel2_head_and_seto(emulator_factory):
         await base.send_command(Cmd.SETO)
         n = base.stats.sips
         await eventually(lambda: base.stats.sips > n + 2, what="SIPs after SETO")
-        base._tracker.reanchor()
+        base.session.tracker.reanchor()
         n = base.stats.sips
         await eventually(lambda: base.stats.sips > n + 1, what="SIP to anchor on")
         assert (base.latest.x, base.latest.y, base.latest.yaw) == pytest.approx((0.0, 0.0, 0.0), abs=0.002)
@@ -344,7 +344,7 @@ async def test_silent_tcp_server_gets_a_tcp_hint_not_a_serial_one():
     port = server.sockets[0].getsockname()[1]
     try:
         with pytest.raises(HandshakeTimeout) as err:
-            await PioneerClient.connect(f"tcp://127.0.0.1:{port}", handshake_tries=2, handshake_timeout=0.1)
+            await PioneerClient.connect(f"tcp://127.0.0.1:{port}", PioneerSettings(handshake_tries=2, handshake_timeout=0.1))
         msg = str(err.value)
         assert "listening on that port" in msg
         assert "9600" not in msg and "cable" not in msg and "SERIAL" not in msg

@@ -67,3 +67,18 @@ def test_a_map_shifted_off_the_blueprint_is_realigned(world):
     assert ev.aligned is not None and ev.aligned.error == 0.0
     assert "after aligning" in ev.describe()
     assert evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool), max_shift=0).aligned is None
+
+
+def test_trajectory_is_scored_at_the_same_scans():
+    from runtime.evaluate import evaluate_trajectory
+
+    truth = np.array([[10, 0.0, 0.0, 0.0], [35, 0.1, 0.0, 0.0], [60, 0.2, 0.0, 0.1], [85, 0.3, 0.0, 0.1]])
+    # estimates of scans 35 and 85 (scan 60 was dropped; 999 has no truth), 3 cm and 4 cm off
+    est = np.array([[35, 0.13, 0.0, 0.0], [999, 5.0, 5.0, 0.0], [85, 0.3, 0.04, 0.1 + 2 * np.pi]])
+    ev = evaluate_trajectory(est, truth)
+    assert ev.n == 2
+    assert ev.final_error == pytest.approx(0.04) and ev.max_error == pytest.approx(0.04)
+    assert ev.ate == pytest.approx(np.sqrt((0.03 ** 2 + 0.04 ** 2) / 2))
+    assert ev.yaw_rms == pytest.approx(0.0, abs=1e-12)  # headings compared modulo a turn
+    np.testing.assert_array_equal(ev.final_true, [0.3, 0.0, 0.1])
+    assert evaluate_trajectory(est[1:2], truth) is None

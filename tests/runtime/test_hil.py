@@ -54,6 +54,13 @@ def test_demo_drives_maps_records_and_scores(demo):
     # The robot was driven along the office corridor by velocity commands from the estimated pose.
     assert res.true_final_pose[0] > 1.2 + 0.5
     assert abs(res.true_final_pose[1] - 1.2) < 0.3
+    # Estimate and truth of the same scans: every processed scan has its true pose; the final error is of
+    # the last processed scan, with the truth the emulated laser ranged from (not the pose after braking).
+    tr = res.trajectory
+    assert tr is not None and tr.n == s.stages.scans_processed
+    assert np.array_equal(tr.final_true, res.true_final_pose) and np.array_equal(tr.final_estimate,
+                                                                                 res.estimated_final_pose)
+    assert tr.final_error < 0.1 and tr.ate < 0.1
     # ... and left stopped and disabled, the laser stream stopped.
     rep = res.device_report
     assert rep["commanded"] == [0.0, 0.0] and rep["motors_enabled"] is False
@@ -116,10 +123,13 @@ def test_replay_of_the_messages_gives_exactly_the_live_maps(demo):
     res, out = demo
     live = np.load(res.summary.exports["npy"])
     # From the decoded messages: exactly the same inputs, so exactly the same maps.
-    r = replay_file(res.recording, source="messages", out_dir=str(out / "messages"), progress=False)
+    r = replay_file(res.recording, source="messages", out_dir=str(out / "messages"), progress=False,
+                    world="office")
     assert r.scans == res.summary.stages.scans_processed
     np.testing.assert_array_equal(np.load(r.exports["npy"]), live)
     assert r.final_pose == pytest.approx(tuple(res.estimated_final_pose), abs=0)
+    # scored like the demo: the cells the simulated laser saw (seen_cells.npy beside the recording)
+    assert r.seen_from == str(out / "seen_cells.npy") and r.error == res.evaluation.error
 
 
 def test_replay_through_the_drivers_gives_the_same_maps(demo):
@@ -129,6 +139,10 @@ def test_replay_through_the_drivers_gives_the_same_maps(demo):
     # the scheduling delay the live client saw in its clock-sync round trips (sub-millisecond to a few ms).
     r = replay_file(res.recording, source="raw", out_dir=str(out / "raw"), progress=False)
     assert r.scans == res.summary.stages.scans_processed
+    # skipped: only scans the live run received and dropped; those decoded from the bytes that came while it
+    # was stopping (the laser streams until its QT) are counted apart
+    st = res.summary.stages
+    assert r.skipped <= st.dropped_overflow + st.dropped_stale and r.after_end > 0
     again = np.load(r.exports["npy"])
     assert again.shape == live.shape
     # Stamps a fraction of a millisecond apart move poses by fractions of a millimetre, which flips

@@ -123,3 +123,27 @@ def test_bad_inputs_give_clear_errors(tmp_path):
         rec.write("/odom", M.odometry_msg(make_odom(1.0), 1), 1)
     with pytest.raises(ReplayInputError, match="no sensor_msgs/LaserScan"):
         list(iter_messages(empty))
+
+
+def test_a_bag_does_not_say_where_the_robot_started_and_the_replay_says_so(tmp_path):
+    import dataclasses
+    import json
+
+    from runtime.config import RuntimeConfig
+    from runtime.replay import recorded_config, start_pose_note
+
+    bag = tmp_path / "bag2"
+    ts = M.typestore()
+    with Writer2(bag, version=9) as w:
+        cs = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
+        s = make_scan(1.0)
+        w.write(cs, 10**9, ts.serialize_cdr(M.laser_scan_msg(s, 10**9), "sensor_msgs/msg/LaserScan"))
+    cfg = recorded_config(bag)
+    assert "--mapping.initial_x" in start_pose_note(bag, cfg)
+    moved = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, initial_x=1.5))
+    assert start_pose_note(bag, moved) is None  # given by the user
+    rec = tmp_path / "rec.mcap"
+    mapping = json.dumps(dataclasses.asdict(RuntimeConfig().mapping))
+    with McapRecorder(rec, metadata=recording_metadata(M.TimeBase(offset_ns=0), mapping=mapping)) as r:
+        r.write("/odom", M.odometry_msg(make_odom(1.0), 1), 1)
+    assert start_pose_note(rec, recorded_config(rec)) is None  # a glassmap recording stores its start pose

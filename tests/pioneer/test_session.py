@@ -1,0 +1,84 @@
+"""One receive path: the bytes a live client read, fed again to the same session by the raw replay, give
+the same odometry (faults and reconnections included)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from drivers.capture import Capture, CaptureRecorder
+from drivers.pioneer.client import PioneerClient
+from drivers.pioneer.odometry import OdometryTracker, model_for
+from drivers.pioneer.packets import SIP_IDS, PacketParser
+from drivers.pioneer.sip import decode_sip, decode_sync2
+from runtime.raw_replay import PioneerReplay
+from tests.pioneer.conftest import SCALE, fast_settings
+from tests.pioneer.make_captures import SESSIONS
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def replay(capture: Capture, device) -> list:
+    out = []
+    for c in capture.chunks:
+        if c.direction == "tx":
+            device.tx(c.t, c.data)
+        else:
+            out.extend(device.rx(c.t, c.data))
+    return out
+
+
+def rx_only(capture: Capture):
+    """Identity, SIPs after the robot's SYNC2 reply and the final odometry, from the rx bytes alone."""
+    info, tracker, n, odom = None, None, 0, None
+    for pkt in PacketParser().feed(capture.rx_bytes()):
+        if pkt.pid == 2 and pkt.payload:
+            info = decode_sync2(pkt.payload)
+            tracker = OdometryTracker(model_for(info.subclass))
+        elif pkt.pid in SIP_IDS and tracker is not None:
+            odom = tracker.update(decode_sip(pkt.pid, pkt.payload), 0.0)
+            n += 1
+    return info, n, odom
+
+
+async def test_raw_replay_of_a_driving_session_gives_the_live_odometry(emulator_factory):
+    emu, url = await emulator_factory()
+    rec = CaptureRecorder("pioneer")
+    live = []
+    async with PioneerClient.connect(url, fast_settings(), taps=[rec], enable_motors=True) as base:
+        base.odometry_callbacks.append(live.append)
+        for _ in range(30):
+            await base.set_velocity(0.3, math.radians(20))
+            await asyncio.sleep(0.02)
+        emu.link_loss(0.5)
+        for _ in range(200):
+            if base.stats.reconnects:
+                break
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)
+    assert base.stats.reconnects == 1 and len(live) > 10
+    assert base.stats.still_open_recoveries == 1  # the robot was still open at the reconnection: its SIPs
+    # before the CLOSE belong to the handshake, not to the odometry
+    rep = PioneerReplay(time_scale=SCALE, tx_chunks=[c.data for c in rec.capture.chunks if c.direction == "tx"])
+    odoms = replay(rec.capture, rep)
+    assert rep.session.links == 2 and rep.session.stats.sips >= len(live)
+    assert len(odoms) == base.stats.sips  # live: the callback was added after the first SIP(s)
+    odoms = odoms[-len(live):]
+    got = np.array([(o.x, o.y, o.yaw, o.v, o.omega) for o in odoms])
+    want = np.array([(o.x, o.y, o.yaw, o.v, o.omega) for o in live])
+    assert np.allclose(got, want, atol=1e-12, rtol=0)
+    assert np.allclose(odoms[-1].covariance, live[-1].covariance, atol=1e-15)
+
+
+@pytest.mark.parametrize("session", SESSIONS, ids=[s.name for s in SESSIONS])
+def test_raw_replay_of_the_committed_captures_skips_the_handshake_like_the_client(session):
+    cap = Capture.load(session.path)
+    info, n_sips, final = rx_only(cap)
+    rep = PioneerReplay(tx_chunks=[c.data for c in cap.chunks if c.direction == "tx"])
+    odoms = replay(cap, rep)
+    assert rep.session.info == info
+    assert len(odoms) == n_sips  # SIPs of a still-open robot before the handshake are not odometry
+    assert (odoms[-1].x, odoms[-1].y, odoms[-1].yaw) == pytest.approx((final.x, final.y, final.yaw), abs=1e-12)
