@@ -23,6 +23,7 @@ import glassmap.pose.cli
 import glassmap.sim.cli
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
+from runtime.live import LiveViewError, add_live_arg
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="map output directory (= output.out_dir)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--teleop", action="store_true", help="drive with the keyboard (enables the motors)")
+    add_live_arg(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_run)
 
@@ -99,6 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--window", type=int, choices=(3, 5), default=None,
                    help="robust registration window k (default: mapping.window, 3)")
     add_no_progress(d)
+    add_live_arg(d)
     add_config_flags(d)
     d.set_defaults(func=cmd_demo)
 
@@ -122,6 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, "
                    "e.g. tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
     add_no_progress(r)
+    add_live_arg(r)
     add_config_flags(r)
     r.set_defaults(func=cmd_replay)
 
@@ -150,7 +154,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _config(args, base: RuntimeConfig | None = None) -> RuntimeConfig:
     try:
-        return config_from_args(args, base)
+        cfg = config_from_args(args, base)
+        if getattr(args, "live", None):
+            cfg.output.live = args.live
+            cfg.validate()
+        return cfg
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -188,6 +196,8 @@ def cmd_run(args) -> int:
         print(f"map {k}: {v}")
     if summary.recording:
         print(f"recording: {summary.recording} ({summary.recorded_messages} messages)")
+    if summary.live:
+        print(f"live view: {summary.live} ({summary.live_sent} messages sent, {summary.live_dropped} dropped)")
     return 0
 
 
@@ -226,15 +236,28 @@ def cmd_replay(args) -> int:
         stem = "glass_map" if len(args.files) == 1 else f"glass_map_{i:03d}"
         jobs.append(ReplayJob(path=f, config=cfg, source=args.source, out_dir=args.out, stem=stem,
                               world=args.world))
+    if args.live and (len(jobs) > 1 or args.dask):
+        print("error: --live shows one replay: give one file (and no --dask)", file=sys.stderr)
+        return 2
     if len(jobs) == 1 and not args.dask:
         j = jobs[0]
+        live = None
         try:
+            if args.live:
+                from runtime.live import start_live_view
+
+                live = start_live_view(j.config.output)
+                print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket URL)",
+                      file=sys.stderr, flush=True)
             res = replay_file(j.path, j.config, source=j.source, out_dir=j.out_dir, stem=j.stem,
                               progress=not args.no_progress, world=j.world, as_recorded=not args.all_scans,
-                              limit=args.limit)
-        except (ReplayInputError, ValueError) as exc:
+                              limit=args.limit, live=live)
+        except (ReplayInputError, ValueError, LiveViewError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
+        finally:
+            if live is not None:
+                live.close()
         print(summarize([res]))
         if res.skipped:
             print(f"{res.skipped} scans skipped: the live run dropped them (--all-scans processes them too)")

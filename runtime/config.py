@@ -132,6 +132,11 @@ class OutputConfig:
     chunk_size: int = setting(512 * 1024, "MCAP chunk size (bytes): at most this much is lost on a crash")
     chunk_interval: float = setting(1.0, "MCAP chunk interval (s): chunks are closed at least this often")
     compression: str = setting("zstd", "MCAP chunk compression: zstd | lz4 | none")
+    live: str = setting("", "serve the live view (Foxglove WebSocket) on [HOST:]PORT; loopback unless a host "
+                            "is given ('' = off)")
+    live_map_period: float = setting(1.0, "live view: seconds between two /map (and two /glass/map) messages")
+    live_queue_size: int = setting(256, "live view: messages waiting to be sent; when full new ones are "
+                                        "dropped (and counted)")
 
 
 @dataclass
@@ -172,6 +177,15 @@ class RuntimeConfig:
             raise ConfigError("pipeline.queue_size must be >= 1")
         if self.pipeline.max_scan_age <= 0:
             raise ConfigError("pipeline.max_scan_age must be > 0 s")
+        if self.output.live:
+            from runtime.live import LiveViewError, parse_address
+
+            try:
+                parse_address(self.output.live)
+            except LiveViewError as exc:
+                raise ConfigError(str(exc).replace("--live", "output.live", 1)) from None
+        if self.output.live_map_period < 0 or self.output.live_queue_size < 1:
+            raise ConfigError("output.live_map_period must be >= 0 s and output.live_queue_size >= 1")
         if self.output.compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"output.compression must be zstd, lz4 or none, got {self.output.compression!r}")
 

@@ -217,6 +217,8 @@ def format_result(res: DemoResult) -> str:
         lines.append(f"map {k}: {v}")
     if res.recording:
         lines.append(f"recording: {res.recording} ({s.recorded_messages} messages, {s.recorder_dropped} dropped)")
+    if s.live:
+        lines.append(f"live view: {s.live} ({s.live_sent} messages sent, {s.live_dropped} dropped)")
     if res.evaluation is not None:
         lines.append(res.evaluation.describe())
     else:

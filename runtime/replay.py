@@ -139,11 +139,13 @@ def iter_source(path: str | Path, source: str = "messages") -> Iterator[Scan | O
 
 def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source: str = "messages",
                 as_recorded: bool = True, out_dir: str | None = None, stem: str = "glass_map",
-                progress: bool = True, world: str | None = None, limit: int | None = None) -> ReplayResult:
+                progress: bool = True, world: str | None = None, limit: int | None = None,
+                live=None) -> ReplayResult:
     """Run the pose estimator and the glass mapper over a recording; export the maps to ``out_dir``.
 
     world: a simulator world name/path to score the map against its blueprint (simulated recordings).
-    limit: stop after this many scans."""
+    limit: stop after this many scans.
+    live: a :class:`runtime.live.LiveView` to publish the replay to (as the live run would)."""
     from runtime.processor import MappingProcessor
 
     cfg = config if config is not None else recorded_config(path)
@@ -161,6 +163,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         bar = tqdm(desc=f"replay {path.name}", unit="scan", mininterval=0.5)
     pending: list[Odometry] = []
     first = last = None
+    pub = _live_publisher(live, path, cfg) if live is not None else None
     t0 = time.perf_counter()
     try:
         for item in prefetch(iter_source(path, source)):
@@ -172,6 +175,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
                 res.skipped += 1
                 continue  # the live run dropped this scan: its odometry goes to the next one
             r = proc.process(item, pending)
+            if pub is not None:
+                pub.publish(pending, r, proc)
             pending = []
             res.scans += 1
             first = item.stamp if first is None else first
@@ -186,6 +191,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         if bar is not None:
             bar.close()
     res.wall_time = time.perf_counter() - t0
+    if pub is not None and res.scans:
+        pub.publish_maps(proc, last)
     if res.scans == 0:
         raise ReplayInputError(f"{path}: no scans were processed")
     res.data_time = float(last - first) if first is not None else 0.0
@@ -200,6 +207,17 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         res.error = evaluate_map(proc, load_world(world)).error
     res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
     return res
+
+
+def _live_publisher(live, path: Path, cfg: RuntimeConfig):
+    from runtime.live import ReplayPublisher
+    from runtime.messages import TimeBase
+
+    meta = read_metadata(path) if path.suffix == ".mcap" and path.is_file() else {}
+    tb = TimeBase(int(meta.get("time_offset_ns", 0)))
+    return ReplayPublisher(live, tb, map_frame=cfg.mapping.map_frame, laser_frame=cfg.laser.laser_frame_id,
+                           base_frame=cfg.base.base_link_frame, odom_frame=cfg.base.odom_frame,
+                           map_period=cfg.output.live_map_period)
 
 
 # -- many files / settings ---------------------------------------------------------------------------------
