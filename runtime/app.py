@@ -32,7 +32,7 @@ from runtime.map_worker import MapWorker, map_messages
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
 from runtime.pipeline import ProcessingStage, ScanResult, StageStats
 from runtime.processor import MappingProcessor
-from runtime.recorder import McapRecorder
+from runtime.recorder import McapRecorder, RecorderError
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
 
@@ -69,6 +69,8 @@ class RunSummary:
     recording: str = ""
     recorded_messages: int = 0
     recorder_dropped: int = 0
+    recording_files: list[str] = field(default_factory=list)  # one unless the recording was split
+    recording_error: str = ""  # why the recording stopped early (disk full, ...), "" if it did not
     live: str = ""  # the live view's WebSocket URL
     live_sent: int = 0
     live_dropped: int = 0
@@ -147,7 +149,9 @@ class Runtime:
                                       mapping=json.dumps(dataclasses.asdict(cfg.mapping)))
             self.recorder = McapRecorder(cfg.output.record, chunk_size=cfg.output.chunk_size,
                                          chunk_interval=cfg.output.chunk_interval,
-                                         compression=cfg.output.compression, metadata=meta)
+                                         compression=cfg.output.compression, metadata=meta,
+                                         split_size=cfg.output.record_split_size,
+                                         split_duration=cfg.output.record_split_duration)
             self.summary.recording = str(cfg.output.record)
         if cfg.output.live:
             try:
@@ -222,9 +226,13 @@ class Runtime:
                 self.summary.live_sent = self.live.stats.total_sent
                 self.summary.live_dropped = self.live.stats.total_dropped
             if self.recorder is not None:
-                self.recorder.close()
+                try:
+                    self.recorder.close()
+                except RecorderError as exc:  # logged once when it happened; the run itself went on
+                    self.summary.recording_error = str(exc)
                 self.summary.recorded_messages = self.recorder.stats.total_written
                 self.summary.recorder_dropped = self.recorder.stats.total_dropped
+                self.summary.recording_files = list(self.recorder.stats.files)
         if failure is not None:
             raise RuntimeFailure(f"run stopped: {stop.reason}") from failure
         return self.summary

@@ -23,7 +23,7 @@ import glassmap.pose.cli
 import glassmap.sim.cli
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
-from runtime.live import LiveViewError, add_live_arg
+from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="map output directory (= output.out_dir)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--teleop", action="store_true", help="drive with the keyboard (enables the motors)")
+    add_split_args(p)
     add_live_arg(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_run)
@@ -101,6 +102,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--window", type=int, choices=(3, 5), default=None,
                    help="robust registration window k (default: mapping.window, 3)")
     add_no_progress(d)
+    add_split_args(d)
     add_live_arg(d)
     add_config_flags(d)
     d.set_defaults(func=cmd_demo)
@@ -157,9 +159,10 @@ def _config(args, base: RuntimeConfig | None = None) -> RuntimeConfig:
         cfg = config_from_args(args, base)
         if getattr(args, "live", None):
             cfg.output.live = args.live
-            cfg.validate()
+        apply_split_args(args, cfg.output)
+        cfg.validate()
         return cfg
-    except ConfigError as exc:
+    except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
@@ -195,7 +198,9 @@ def cmd_run(args) -> int:
     for k, v in summary.exports.items():
         print(f"map {k}: {v}")
     if summary.recording:
-        print(f"recording: {summary.recording} ({summary.recorded_messages} messages)")
+        stopped = "; stopped early, see the error above" if summary.recording_error else ""
+        print(f"recording: {describe_files(summary.recording_files) or summary.recording} "
+              f"({summary.recorded_messages} messages{stopped})")
     if summary.live:
         print(f"live view: {summary.live} ({summary.live_sent} messages sent, {summary.live_dropped} dropped)")
     return 0

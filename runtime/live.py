@@ -21,6 +21,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from runtime.messages import TOPICS, msgdef, typestore
+from runtime.output_args import LiveViewError, parse_address
 
 log = logging.getLogger(__name__)
 
@@ -28,21 +29,6 @@ log = logging.getLogger(__name__)
 LIVE_TOPICS: dict[str, str] = {t: ty for t, ty in TOPICS.items() if not t.startswith("/raw/")}
 MAP_TOPICS = frozenset({"/map", "/glass/map"})
 _STOP = object()
-
-
-class LiveViewError(OSError):
-    """The live view cannot start (bad address, port in use, foxglove-sdk missing)."""
-
-
-def parse_address(text: str) -> tuple[str, int]:
-    """``PORT`` (loopback) or ``HOST:PORT`` -> (host, port). Port 0 picks a free port."""
-    host, sep, port = str(text).strip().rpartition(":")
-    if not sep:
-        host = "127.0.0.1"
-    host = host.strip("[]") or "127.0.0.1"
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise LiveViewError(f"--live {text!r}: expected PORT or HOST:PORT (e.g. 8765 or 0.0.0.0:8765)")
-    return host, int(port)
 
 
 @dataclass
@@ -191,13 +177,6 @@ class Fanout:
         for t in self.targets:
             ok = t.write(topic, msg, log_ns, publish_ns) or ok
         return ok
-
-
-def add_live_arg(parser) -> None:
-    """The ``--live [HOST:]PORT`` flag (= output.live) of run, demo and replay."""
-    parser.add_argument("--live", metavar="[HOST:]PORT", default=None,
-                        help="serve the live view to Foxglove (WebSocket) on this port, loopback unless a host is "
-                        "given, e.g. 8765 or 0.0.0.0:8765 (= output.live)")
 
 
 def start_live_view(output) -> LiveView:

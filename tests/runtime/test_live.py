@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from runtime import messages as M
-from runtime.live import LIVE_TOPICS, Fanout, LiveView, LiveViewError, parse_address
+from runtime.live import LIVE_TOPICS, Fanout, LiveView
+from runtime.output_args import LiveViewError, parse_address
 from runtime.pipeline import ScanResult
 from runtime.sink import RecordingSink
 from tests.runtime.conftest import make_odom, make_scan
