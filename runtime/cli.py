@@ -21,6 +21,7 @@ import drivers.pioneer.cli
 import glassmap.glass_cli
 import glassmap.pose.cli
 import glassmap.sim.cli
+from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
 from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
@@ -42,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     register(sub)
     for group in GROUPS:
         group.register(sub)
+    tidy_help(parser)
     return parser
 
 
