@@ -23,7 +23,7 @@ from runtime.live import LIVE_TOPICS, Fanout, LiveView
 from runtime.output_args import LiveViewError, parse_address
 from runtime.pipeline import ScanResult
 from runtime.sink import RecordingSink
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 
 CLIENT = Path(__file__).resolve().parent / "live_client"
 pytestmark = pytest.mark.timeout(120)

@@ -20,7 +20,7 @@ from runtime import messages as M
 from runtime.output_args import parse_size
 from runtime.recorder import LATCHED_TOPICS, McapRecorder, RecorderError, read_mcap, recover_mcap
 from runtime.sink import RecordingSink
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(180)
@@ -113,7 +113,7 @@ resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))
 from runtime import messages as M
 from runtime.recorder import McapRecorder, RecorderError
 from runtime.sink import RecordingSink
-from tests.runtime.conftest import make_odom, make_scan
+from tests.runtime.factories import make_odom, make_scan
 rec = McapRecorder({path!r}, chunk_size=8192, chunk_interval=0.05)
 sink = RecordingSink(rec, M.TimeBase(1_700_000_000_000_000_000))
 for k in range(600):  # the producer (the runtime) never notices: write() never blocks or raises
