@@ -132,6 +132,10 @@ def _stream(args) -> int:
             if n:
                 print(f"last scan: {scan.ranges.size} beams, {int(np.isfinite(scan.ranges).sum())} with a "
                       f"range, sensor stamp {scan.sensor_stamp:.3f} s")
+                g = scan.geometry  # the beams within 0.5 deg of the sensor's front (0 rad)
+                k = np.abs(g.angle_min + g.angle_increment * np.arange(scan.ranges.size)) <= np.radians(0.5)
+                ahead = scan.ranges[k][np.isfinite(scan.ranges[k])]
+                print(f"straight ahead: {np.median(ahead):.3f} m" if ahead.size else "straight ahead: no return")
             print("counters: " + ", ".join(f"{k}={v}" for k, v in vars(client.stats).items()))
 
     return _run(run())
