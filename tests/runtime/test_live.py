@@ -259,7 +259,7 @@ def test_demo_serves_live_view_with_a_stuck_and_a_reading_viewer(tmp_path):
     assert s.live == f"ws://127.0.0.1:{port}"
     assert s.live_sent > 0
     assert s.stop_reason == "duration 10 s (emulated) reached"
-    assert s.scans_processed > 5 and s.scans_received > 150
+    assert s.stages.scans_processed > 5 and s.stages.scans_received > 150
     assert reader.returncode == 0, report
     for t in wanted:
         assert report["topics"][t]["count"] >= 1, t

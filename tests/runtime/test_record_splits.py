@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
+import re
 import subprocess
 import sys
 import time
@@ -160,7 +160,7 @@ import resource, signal, sys
 sys.path.insert(0, {str(ROOT)!r})
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 resource.setrlimit(resource.RLIMIT_FSIZE, ({1536 * 1024}, {1536 * 1024}))
-from glassmap.cli import main
+from runtime.cli import main
 sys.exit(main(["demo", "--speed", "2", "--duration", "10", "--no-progress", "--out", {str(tmp_path)!r}]))
 """
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=170, cwd=ROOT)
@@ -169,7 +169,7 @@ sys.exit(main(["demo", "--speed", "2", "--duration", "10", "--no-progress", "--o
     assert "Traceback" not in p.stderr
     assert "stopped early" in p.stdout
     assert "duration 10 s (emulated) reached" in p.stdout
-    processed = int(p.stdout.split(" processed")[0].rsplit(" ", 1)[-1])
+    processed = int(re.search(r"processed (\d+)", p.stdout).group(1))
     assert processed > 5
     assert (tmp_path / "glass_map.png").is_file()
     got = Counter(t for t, _, _, _ in read_mcap(tmp_path / "demo.mcap"))
