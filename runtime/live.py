@@ -75,6 +75,8 @@ class LiveView:
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self._closed = False
         self._ctx = Context()
+        # a viewer closing its tab is normal: the SDK's per-client connection errors are not the operator's
+        logging.getLogger("foxglove.websocket.connected_client").setLevel(logging.CRITICAL)
         try:
             self._server = foxglove.start_server(name="glassmap", host=host, port=port, context=self._ctx,
                                                  message_backlog_size=backlog)
