@@ -19,6 +19,7 @@ import dataclasses
 import json
 import logging
 import math
+import sys
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures.process import BrokenProcessPool
@@ -26,11 +27,12 @@ from dataclasses import dataclass, field
 
 from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
+from runtime.live import Fanout, LiveView, start_live_view
 from runtime.map_worker import MapWorker, map_messages
 from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
 from runtime.pipeline import ProcessingStage, ScanResult, StageStats
 from runtime.processor import MappingProcessor
-from runtime.recorder import McapRecorder
+from runtime.recorder import McapRecorder, RecorderError
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
 
@@ -67,6 +69,11 @@ class RunSummary:
     recording: str = ""
     recorded_messages: int = 0
     recorder_dropped: int = 0
+    recording_files: list[str] = field(default_factory=list)  # one unless the recording was split
+    recording_error: str = ""  # why the recording stopped early (disk full, ...), "" if it did not
+    live: str = ""  # the live view's WebSocket URL
+    live_sent: int = 0
+    live_dropped: int = 0
     exports: dict[str, str] = field(default_factory=dict)
     stop_reason: str = ""
     duration: float = 0.0
@@ -105,6 +112,7 @@ class Runtime:
         self.stage: ProcessingStage | None = None
         self.recorder: McapRecorder | None = None
         self.sink: RecordingSink | None = None
+        self.live: LiveView | None = None
         self._rx_time: dict[str, float] = {}
         self.map_worker = MapWorker()
         self._pose_event = asyncio.Event()
@@ -146,13 +154,29 @@ class Runtime:
                                       mapping=json.dumps(dataclasses.asdict(cfg.mapping)))
             self.recorder = McapRecorder(cfg.output.record, chunk_size=cfg.output.chunk_size,
                                          chunk_interval=cfg.output.chunk_interval,
-                                         compression=cfg.output.compression, metadata=meta)
-            self.sink = RecordingSink(self.recorder, self.time_base, laser_frame=cfg.laser.laser_frame_id,
-                                      base_frame=cfg.base.base_link_frame, odom_frame=cfg.base.odom_frame,
-                                      map_frame=cfg.mapping.map_frame, record_raw=cfg.output.record_raw)
-            rosout = RosoutHandler(self.recorder, self.time_base)
-            log_state = _record_info_logs(rosout)
+                                         compression=cfg.output.compression, metadata=meta,
+                                         split_size=cfg.output.record_split_size,
+                                         split_duration=cfg.output.record_split_duration)
             self.summary.recording = str(cfg.output.record)
+        if cfg.output.live:
+            try:
+                self.live = start_live_view(cfg.output)
+            except BaseException:
+                if self.recorder is not None:
+                    self.recorder.close()
+                raise
+            self.summary.live = self.live.url
+            # the operator needs this address: on the console whatever the log level
+            print(f"live view: {self.live.url} (Foxglove: Open connection -> Foxglove WebSocket URL)",
+                  file=sys.stderr, flush=True)
+        if self.recorder is not None or self.live is not None:
+            out = Fanout(self.recorder, self.live)
+            self.sink = RecordingSink(out, self.time_base, laser_frame=cfg.laser.laser_frame_id,
+                                      base_frame=cfg.base.base_link_frame, odom_frame=cfg.base.odom_frame,
+                                      map_frame=cfg.mapping.map_frame,
+                                      record_raw=cfg.output.record_raw and self.recorder is not None)
+            rosout = RosoutHandler(out, self.time_base)
+            log_state = _record_info_logs(rosout)
         self.stage = ProcessingStage(self.processor, queue_size=cfg.pipeline.queue_size,
                                      max_scan_age=cfg.pipeline.max_scan_age, odom_buffer=cfg.pipeline.odom_buffer,
                                      on_result=self._on_result)
@@ -202,10 +226,18 @@ class Runtime:
                 self.sink.summary(time.monotonic(), self.summary.as_dict())
             if rosout is not None:
                 _restore_logs(rosout, log_state)
+            if self.live is not None:
+                self.live.close()
+                self.summary.live_sent = self.live.stats.total_sent
+                self.summary.live_dropped = self.live.stats.total_dropped
             if self.recorder is not None:
-                self.recorder.close()
+                try:
+                    self.recorder.close()
+                except RecorderError as exc:  # logged once when it happened; the run itself went on
+                    self.summary.recording_error = str(exc)
                 self.summary.recorded_messages = self.recorder.stats.total_written
                 self.summary.recorder_dropped = self.recorder.stats.total_dropped
+                self.summary.recording_files = list(self.recorder.stats.files)
         if failure is not None:
             raise RuntimeFailure(f"run stopped: {stop.reason}") from failure
         return self.summary

@@ -21,8 +21,10 @@ import drivers.pioneer.cli
 import glassmap.glass_cli
 import glassmap.pose.cli
 import glassmap.sim.cli
+from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
+from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     register(sub)
     for group in GROUPS:
         group.register(sub)
+    tidy_help(parser)
     return parser
 
 
@@ -75,6 +78,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="map output directory (= output.out_dir)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--teleop", action="store_true", help="drive with the keyboard (enables the motors)")
+    add_split_args(p)
+    add_live_arg(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_run)
 
@@ -100,6 +105,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--window", type=int, choices=(3, 5), default=None,
                    help="robust registration window k (default: mapping.window, 3)")
     add_no_progress(d)
+    add_split_args(d)
+    add_live_arg(d)
     add_config_flags(d)
     d.set_defaults(func=cmd_demo)
 
@@ -127,6 +134,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, "
                    "e.g. tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
     add_no_progress(r)
+    add_live_arg(r)
     add_config_flags(r)
     r.set_defaults(func=cmd_replay)
 
@@ -155,8 +163,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _config(args, base: RuntimeConfig | None = None) -> RuntimeConfig:
     try:
-        return config_from_args(args, base)
-    except ConfigError as exc:
+        cfg = config_from_args(args, base)
+        if getattr(args, "live", None):
+            cfg.output.live = args.live
+        apply_split_args(args, cfg.output)
+        cfg.validate()
+        return cfg
+    except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
@@ -194,7 +207,11 @@ def cmd_run(args) -> int:
     for k, v in summary.exports.items():
         print(f"map {k}: {v}")
     if summary.recording:
-        print(f"recording: {summary.recording} ({summary.recorded_messages} messages)")
+        stopped = "; stopped early, see the error above" if summary.recording_error else ""
+        print(f"recording: {describe_files(summary.recording_files) or summary.recording} "
+              f"({summary.recorded_messages} messages{stopped})")
+    if summary.live:
+        print(f"live view: {summary.live} ({summary.live_sent} messages sent, {summary.live_dropped} dropped)")
     return 0
 
 
@@ -253,15 +270,28 @@ def cmd_replay(args) -> int:
         stem = "glass_map" if len(args.files) == 1 else f"glass_map_{i:03d}"
         jobs.append(ReplayJob(path=f, config=cfg, source=args.source, out_dir=args.out, stem=stem,
                               world=args.world, seen=args.seen))
+    if args.live and (len(jobs) > 1 or args.dask):
+        print("error: --live shows one replay: give one file (and no --dask)", file=sys.stderr)
+        return 2
     if len(jobs) == 1 and not args.dask:
         j = jobs[0]
+        live = None
         try:
+            if args.live:
+                from runtime.live import start_live_view
+
+                live = start_live_view(j.config.output)
+                print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket URL)",
+                      file=sys.stderr, flush=True)
             res = replay_file(j.path, j.config, source=j.source, out_dir=j.out_dir, stem=j.stem,
                               progress=not args.no_progress, world=j.world, as_recorded=not args.all_scans,
-                              limit=args.limit, seen=j.seen)
-        except (ReplayInputError, ValueError) as exc:
+                              limit=args.limit, seen=j.seen, live=live)
+        except (ReplayInputError, ValueError, LiveViewError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
+        finally:
+            if live is not None:
+                live.close()
         print(summarize([res]))
         for note in res.notes:
             print(f"note: {note}")

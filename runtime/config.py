@@ -40,7 +40,7 @@ def setting(default: Any, help: str) -> Any:
 class LaserConfig:
     """Hokuyo settings (ROS urg_node parameter names)."""
 
-    ip_address: str = setting("192.168.0.10", "laser IP address (UTM-30LX-EW default 192.168.0.10)")
+    ip_address: str = setting("192.168.0.10", "laser IP address (the UTM-30LX-EW's factory address)")
     ip_port: int = setting(10940, "laser TCP port")
     serial_port: str = setting("", "laser serial device for USB models (e.g. /dev/ttyACM0); wins over ip_address")
     serial_baud: int = setting(115200, "laser serial baud rate")
@@ -128,10 +128,18 @@ class OutputConfig:
     export_period: float = setting(10.0, "seconds between periodic map exports (0 = only at exit)")
     map_publish_period: float = setting(2.0, "seconds between /map and /glass/map messages in the recording")
     record: str = setting("", "MCAP file to record into ('' = no recording)")
+    record_split_size: int = setting(0, "split the recording into files of about this many bytes (one chunk "
+                                        "more at most): <stem>_0000.mcap, <stem>_0001.mcap, ...; 0 = no split")
+    record_split_duration: float = setting(0.0, "split the recording every this many seconds (0 = no split)")
     record_raw: bool = setting(True, "record the raw device bytes (needed to replay through the drivers)")
     chunk_size: int = setting(512 * 1024, "MCAP chunk size (bytes): at most this much is lost on a crash")
     chunk_interval: float = setting(1.0, "MCAP chunk interval (s): chunks are closed at least this often")
     compression: str = setting("zstd", "MCAP chunk compression: zstd | lz4 | none")
+    live: str = setting("", "serve the live view (Foxglove WebSocket) on [HOST:]PORT; loopback unless a host "
+                            "is given ('' = off)")
+    live_map_period: float = setting(1.0, "live view: seconds between two /map (and two /glass/map) messages")
+    live_queue_size: int = setting(256, "live view: messages waiting to be sent; when full new ones are "
+                                        "dropped (and counted)")
 
 
 @dataclass
@@ -172,6 +180,17 @@ class RuntimeConfig:
             raise ConfigError("pipeline.queue_size must be >= 1")
         if self.pipeline.max_scan_age <= 0:
             raise ConfigError("pipeline.max_scan_age must be > 0 s")
+        if self.output.live:
+            from runtime.output_args import LiveViewError, parse_address
+
+            try:
+                parse_address(self.output.live)
+            except LiveViewError as exc:
+                raise ConfigError(str(exc).replace("--live", "output.live", 1)) from None
+        if self.output.record_split_size < 0 or self.output.record_split_duration < 0:
+            raise ConfigError("output.record_split_size (bytes) and output.record_split_duration (s) must be >= 0")
+        if self.output.live_map_period < 0 or self.output.live_queue_size < 1:
+            raise ConfigError("output.live_map_period must be >= 0 s and output.live_queue_size >= 1")
         if self.output.compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"output.compression must be zstd, lz4 or none, got {self.output.compression!r}")
 

@@ -238,7 +238,13 @@ def format_result(res: DemoResult) -> str:
     for k, v in s.exports.items():
         lines.append(f"map {k}: {v}")
     if res.recording:
-        lines.append(f"recording: {res.recording} ({s.recorded_messages} messages, {s.recorder_dropped} dropped)")
+        from runtime.output_args import describe_files
+
+        stopped = "; stopped early, see the error above" if s.recording_error else ""
+        lines.append(f"recording: {describe_files(s.recording_files) or res.recording} ({s.recorded_messages} "
+                     f"messages, {s.recorder_dropped} dropped{stopped})")
+    if s.live:
+        lines.append(f"live view: {s.live} ({s.live_sent} messages sent, {s.live_dropped} dropped)")
     if res.evaluation is not None:
         lines.append(res.evaluation.describe())
     else:

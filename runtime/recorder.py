@@ -7,10 +7,22 @@ library and compresses chunks. A chunk is closed when it exceeds ``chunk_size`` 
 loss of the laptop's disk cache aside) everything up to the last completed chunk is in the file. Such a
 file has no summary and footer; :func:`read_mcap` reads it anyway and :func:`recover_mcap` rewrites it into
 a complete file (for Foxglove and rosbags' AnyReader).
+
+Splits (long field sessions): with ``split_size`` (bytes) and/or ``split_duration`` (s) the recording is a
+series of complete files ``<stem>_0000.mcap``, ``<stem>_0001.mcap``, ... (names sort in time order). The
+writer thread closes a file (summary, footer) once it holds ``split_size`` bytes (checked after each chunk,
+so a file can exceed it by up to one chunk) or has been open ``split_duration`` seconds, and writes the next
+message into the next file: nothing is lost or repeated at a boundary. Each file carries the metadata and
+starts with the latest ``/tf_static``, so each one opens on its own in Foxglove and replays on its own.
+
+A write error (disk full, a file-size limit) stops the recording, not the runtime: one error message, the
+messages after it are dropped and counted, what was written stays readable (:func:`read_mcap`, or
+:func:`recover_mcap` to add the footer).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import queue
 import threading
@@ -31,6 +43,8 @@ log = logging.getLogger(__name__)
 
 PROFILE = "ros2"
 _STOP = object()
+# Topics whose latest message starts every split file (latched, as in ROS).
+LATCHED_TOPICS = frozenset({"/tf_static"})
 
 
 class RecorderError(Exception):
@@ -45,6 +59,8 @@ class RecorderStats:
     dropped: Counter = field(default_factory=Counter)
     chunks_flushed: int = 0
     errors: int = 0
+    files: list[str] = field(default_factory=list)  # files written, in order (one unless split)
+    stopped: str = ""  # why the recording stopped early (a write error), "" if it did not
 
     @property
     def total_written(self) -> int:
@@ -66,34 +82,59 @@ class McapRecorder:
     def __init__(self, path: str | Path, *, chunk_size: int = 512 * 1024, chunk_interval: float = 1.0,
                  compression: str = "zstd", queue_size: int = 20000,
                  topics: dict[str, str] | None = None,
-                 metadata: dict[str, dict[str, str]] | None = None) -> None:
+                 metadata: dict[str, dict[str, str]] | None = None,
+                 split_size: int = 0, split_duration: float = 0.0) -> None:
         if chunk_size <= 0 or chunk_interval <= 0:
             raise ValueError("chunk_size and chunk_interval must be positive")
+        if split_size < 0 or split_duration < 0:
+            raise ValueError("split_size (bytes) and split_duration (s) must be >= 0 (0 = no split)")
         try:
-            comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
-                compression]
+            self._comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                          "none": CompressionType.NONE}[compression]
         except KeyError:
             raise ValueError(f"compression must be zstd, lz4 or none, got {compression!r}") from None
         self.path = Path(path)
+        self.chunk_size = chunk_size
         self.chunk_interval = chunk_interval
+        self.split_size = int(split_size)
+        self.split_duration = float(split_duration)
         self.topics = dict(TOPICS if topics is None else topics)
+        self.metadata = {name: {k: str(v) for k, v in values.items()} for name, values in (metadata or {}).items()}
         self.stats = RecorderStats()
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
-        except OSError as exc:
-            raise RecorderError(f"cannot create recording {self.path}: {exc.strerror or exc}") from exc
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
-        self._writer.start(profile=PROFILE, library="glassmap")
-        for name, values in (metadata or {}).items():  # written first: survives a crash
-            self._writer.add_metadata(name, {k: str(v) for k, v in values.items()})
-        self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
+        self._latched: dict[str, tuple] = {}
         self._error: BaseException | None = None
         self._closed = False
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._open(0)
+        except OSError as exc:
+            raise RecorderError(f"cannot create recording {self._file_path(0)}: {exc.strerror or exc}") from exc
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._thread.start()
+
+    @property
+    def splitting(self) -> bool:
+        return self.split_size > 0 or self.split_duration > 0
+
+    def _file_path(self, index: int) -> Path:
+        """The file of split ``index``: the path itself when not splitting, else <stem>_NNNN<suffix>."""
+        if not self.splitting:
+            return self.path
+        return self.path.with_name(f"{self.path.stem}_{index:04d}{self.path.suffix or '.mcap'}")
+
+    def _open(self, index: int) -> None:
+        path = self._file_path(index)
+        self._index = index
+        self._file = open(path, "wb")
+        self._writer = Writer(self._file, chunk_size=self.chunk_size, compression=self._comp)
+        self._writer.start(profile=PROFILE, library="glassmap")
+        for name, values in self.metadata.items():  # written first: survives a crash
+            self._writer.add_metadata(name, values)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._opened = time.monotonic()
+        self.stats.files.append(str(path))
 
     # -- producer side (any thread) ---------------------------------------------------------------------
     def write(self, topic: str, msg, log_ns: int, publish_ns: int | None = None) -> bool:
@@ -101,7 +142,7 @@ class McapRecorder:
 
         ``msg`` may be a zero-argument callable returning the message: it is then built in the writer thread
         (so the caller does not pay for it); or ``bytes``: the message already serialised as CDR."""
-        if self._closed:
+        if self._closed or self._error is not None:
             self.stats.dropped[topic] += 1
             return False
         try:
@@ -131,14 +172,19 @@ class McapRecorder:
             log.error("recorder: writer thread did not finish within %.0f s; %s may lack its footer",
                       timeout, self.path)
             return
-        try:
-            if self._error is None:
-                self._writer.finish()
-            self._file.close()
-        except OSError as exc:
-            raise RecorderError(f"cannot finish recording {self.path}: {exc.strerror or exc}") from exc
         if self._error is not None:
-            raise RecorderError(f"recording {self.path} stopped early: {self._error}") from self._error
+            try:
+                self._file.close()
+            except OSError:
+                pass  # the buffered tail cannot be written either: the error is reported below
+        else:
+            try:
+                self._writer.finish()
+                self._file.close()
+            except OSError as exc:
+                self._stop_on_error(exc)
+        if self._error is not None:
+            raise RecorderError(self.stats.stopped) from self._error
 
     def __enter__(self) -> McapRecorder:
         return self
@@ -163,6 +209,28 @@ class McapRecorder:
         self._channels[topic] = cid
         return cid
 
+    def _split_due(self) -> bool:
+        if not self.splitting:
+            return False
+        if self.split_duration > 0 and time.monotonic() - self._opened >= self.split_duration:
+            return True
+        return self.split_size > 0 and self._file.tell() >= self.split_size
+
+    def _next_split(self) -> None:
+        """Finish the current file (complete, readable on its own) and open the next one."""
+        self._writer.finish()
+        self._file.close()
+        self._open(self._index + 1)
+        for topic, (msg, log_ns, pub_ns) in self._latched.items():
+            self._add(topic, msg, log_ns, pub_ns, count=False)
+
+    def _add(self, topic: str, data: bytes, log_ns: int, pub_ns: int, count: bool = True) -> None:
+        cid = self._channel(topic)
+        self._writer.add_message(channel_id=cid, log_time=log_ns, publish_time=pub_ns, data=data,
+                                 sequence=self.stats.written[topic])
+        if count:
+            self.stats.written[topic] += 1
+
     def _run(self) -> None:
         ts = typestore()
         last_flush = time.monotonic()
@@ -178,13 +246,15 @@ class McapRecorder:
             try:
                 if item is not None:
                     topic, msg, log_ns, pub_ns = item
-                    cid = self._channel(topic)
                     if callable(msg):
                         msg = msg()
-                    data = msg if isinstance(msg, bytes) else ts.serialize_cdr(msg, self.topics[topic])
-                    self._writer.add_message(channel_id=cid, log_time=log_ns, publish_time=pub_ns,
-                                             data=bytes(data), sequence=self.stats.written[topic])
-                    self.stats.written[topic] += 1
+                    data = bytes(msg if isinstance(msg, bytes) else ts.serialize_cdr(msg, self.topics[topic]))
+                    if self._split_due():
+                        self._next_split()
+                        last_flush, dirty = time.monotonic(), False
+                    self._add(topic, data, log_ns, pub_ns)
+                    if topic in LATCHED_TOPICS:
+                        self._latched[topic] = (data, log_ns, pub_ns)
                     dirty = True
                 if dirty and time.monotonic() - last_flush >= self.chunk_interval:
                     self._writer.flush()  # closes the chunk and flushes the file
@@ -192,13 +262,22 @@ class McapRecorder:
                     last_flush = time.monotonic()
                     dirty = False
             except OSError as exc:
-                self._error = exc
-                log.error("recorder: writing %s failed (%s); recording stopped", self.path, exc)
-                self._drain()
+                self._stop_on_error(exc)
                 return
             except Exception as exc:  # a bad message must not kill the recording
                 self.stats.errors += 1
                 log.warning("recorder: message on %s not recorded: %s", item[0] if item else "?", exc)
+
+    def _stop_on_error(self, exc: OSError) -> None:
+        full = exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+        why = "the disk is full or a file-size limit was reached" if full else "the file cannot be written"
+        self.stats.stopped = (
+            f"recording stopped: {why} ({exc.strerror or exc}) writing {self._file_path(self._index)}; "
+            f"{self.stats.total_written} messages recorded, mapping goes on. What was written is readable; "
+            f"'glassmap recover' completes the last file")
+        self._error = exc
+        log.error("%s", self.stats.stopped)
+        self._drain()
 
     def _drain(self) -> None:
         while True:

@@ -166,12 +166,13 @@ def start_pose_note(path: str | Path, config: RuntimeConfig) -> str | None:
 def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source: str = "messages",
                 as_recorded: bool = True, out_dir: str | None = None, stem: str = "glass_map",
                 progress: bool = True, world: str | None = None, limit: int | None = None,
-                seen: str | Path | None = None) -> ReplayResult:
+                seen: str | Path | None = None, live=None) -> ReplayResult:
     """Run the pose estimator and the glass mapper over a recording; export the maps to ``out_dir``.
 
     world: a simulator world name/path to score the map against its blueprint (simulated recordings), with
     the same rule as the demo; seen: the demo's seen-cells mask (default: ``seen_cells.npy`` beside the
-    recording, see :func:`seen_cells_for`). limit: stop after this many scans (>= 1)."""
+    recording, see :func:`seen_cells_for`). limit: stop after this many scans (>= 1).
+    live: a :class:`runtime.live.LiveView` to publish the replay to (as the live run would)."""
     from runtime.processor import MappingProcessor
 
     if limit is not None and limit < 1:
@@ -198,6 +199,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     pending: list[Odometry] = []
     first = last = None
     unprocessed = 0
+    pub = _live_publisher(live, path, cfg) if live is not None else None
     t0 = time.perf_counter()
     try:
         for item in prefetch(iter_source(path, source)):
@@ -211,6 +213,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
             res.skipped += unprocessed
             unprocessed = 0
             r = proc.process(item, pending)
+            if pub is not None:
+                pub.publish(pending, r, proc)
             pending = []
             res.scans += 1
             first = item.stamp if first is None else first
@@ -227,6 +231,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     res.wall_time = time.perf_counter() - t0
     if limit is None or res.scans < limit:
         res.after_end = unprocessed
+    if pub is not None and res.scans:
+        pub.publish_maps(proc, last)
     if res.scans == 0:
         raise ReplayInputError(f"{path}: no scans were processed")
     res.data_time = float(last - first) if first is not None else 0.0
@@ -245,6 +251,17 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         res.seen_from = str(seen_path) if ev.seen_from == "simulator" else "map"
     res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
     return res
+
+
+def _live_publisher(live, path: Path, cfg: RuntimeConfig):
+    from runtime.live import ReplayPublisher
+    from runtime.messages import TimeBase
+
+    meta = read_metadata(path) if path.suffix == ".mcap" and path.is_file() else {}
+    tb = TimeBase(int(meta.get("time_offset_ns", 0)))
+    return ReplayPublisher(live, tb, map_frame=cfg.mapping.map_frame, laser_frame=cfg.laser.laser_frame_id,
+                           base_frame=cfg.base.base_link_frame, odom_frame=cfg.base.odom_frame,
+                           map_period=cfg.output.live_map_period)
 
 
 # -- many files / settings ---------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ pick_python() {
 
 setup() {
   local stamp="$venv/.glassmap-setup" want
-  want="$(cat pyproject.toml scripts/dev.sh | sha256sum | cut -c1-16)"
+  want="$(cat pyproject.toml scripts/dev.sh tests/runtime/live_client/package-lock.json | sha256sum | cut -c1-16)"
   if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then return 0; fi
   local py; py="$(pick_python)"
   echo "== setting up $venv (one time; torch is large)" >&2
@@ -32,6 +32,13 @@ setup() {
   # torch first and pinned: a range admitting newer releases would pull the CUDA builds.
   "$venv/bin/python" -m pip install --quiet "torch==2.13.0"
   "$venv/bin/python" -m pip install --quiet -e ".[test]"
+  # test tool only: Foxglove's WebSocket client under Node checks the live view (skipped without node)
+  if command -v npm >/dev/null 2>&1; then
+    npm ci --prefix tests/runtime/live_client --no-audit --no-fund --loglevel=error \
+      || echo "note: npm ci failed: the live-view tests will be skipped" >&2
+  else
+    echo "note: npm not found: the live-view tests will be skipped" >&2
+  fi
   echo "$want" > "$stamp"
 }
 

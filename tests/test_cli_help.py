@@ -34,3 +34,20 @@ def test_help_exits_zero(argv, capsys):
         build_parser().parse_args(argv)
     assert e.value.code == 0
     assert "usage:" in capsys.readouterr().out
+
+
+def test_every_option_has_help_and_says_its_default_once():
+    problems = []
+    for path, parser in _parsers(build_parser()):
+        fmt = parser._get_formatter()
+        for action in parser._actions:
+            if isinstance(action, (argparse._SubParsersAction, argparse._HelpAction)):
+                continue
+            where = f"glassmap {' '.join(path)} {'/'.join(action.option_strings) or action.dest}"
+            if not action.help:
+                problems.append(f"{where}: no help")
+                continue
+            text = fmt._expand_help(action)
+            if text.count("(default") > 1 or "(default: None)" in text:
+                problems.append(f"{where}: {text}")
+    assert not problems, "\n".join(problems)

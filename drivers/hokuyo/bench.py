@@ -46,6 +46,13 @@ def decode_ours(msgs: list[bytes]) -> list[ScanReply]:
     return out
 
 
+def hokuyolx_available() -> bool:
+    """Whether the reference decoder (the hokuyolx package, a test extra) can be imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("hokuyolx") is not None
+
+
 def decode_hokuyolx(msgs: list[bytes]) -> list[np.ndarray]:
     """hokuyolx's per-scan path (needs hokuyolx installed)."""
     from hokuyolx import HokuyoLX

@@ -134,6 +134,10 @@ def _stream(args) -> int:
             if n:
                 print(f"last scan: {scan.ranges.size} beams, {int(np.isfinite(scan.ranges).sum())} with a "
                       f"range, sensor stamp {scan.sensor_stamp:.3f} s")
+                g = scan.geometry  # the beams within 0.5 deg of the sensor's front (0 rad)
+                k = np.abs(g.angle_min + g.angle_increment * np.arange(scan.ranges.size)) <= np.radians(0.5)
+                ahead = scan.ranges[k][np.isfinite(scan.ranges[k])]
+                print(f"straight ahead: {np.median(ahead):.3f} m" if ahead.size else "straight ahead: no return")
             print("counters: " + ", ".join(f"{k}={v}" for k, v in vars(client.stats).items()))
 
     return _run(run())
@@ -182,11 +186,16 @@ def _emulate(args) -> int:
 
 
 def _bench(args) -> int:
-    from drivers.hokuyo.bench import run_bench
+    from drivers.hokuyo.bench import hokuyolx_available, run_bench
 
     if args.scans < 1 or args.seconds <= 0:
         return _fail(ValueError("--scans must be >= 1 and --seconds > 0"))
-    r = run_bench(args.scans, args.seconds, with_hokuyolx=not args.no_hokuyolx)
+    with_ref = not args.no_hokuyolx
+    if with_ref and not hokuyolx_available():
+        print("note: hokuyolx is not installed: comparison skipped (pip install hokuyolx, or "
+              "pip install 'glassmap[test]')")
+        with_ref = False
+    r = run_bench(args.scans, args.seconds, with_hokuyolx=with_ref)
     print(f"ours:     {r.ours_scans_per_s:10.1f} scans/s  (1081-step ME, checksums verified)")
     if r.hokuyolx_scans_per_s is not None:
         print(f"hokuyolx: {r.hokuyolx_scans_per_s:10.1f} scans/s")

@@ -71,3 +71,16 @@ def test_bench_decoders_agree_and_report_rates():
     assert len(msgs) == 3 and all(m.endswith(b"\n\n") for m in msgs)
     r = run_bench(n=20, min_time=0.05)  # checks both decoders give the same numbers first
     assert r.ours_scans_per_s > 0 and r.hokuyolx_scans_per_s > 0 and r.speedup > 0
+
+
+def test_bench_without_hokuyolx_skips_the_comparison_with_a_note(monkeypatch, capsys):
+    import importlib.util
+
+    from runtime.cli import main
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "hokuyolx" else real(name, *a))
+    assert main(["hokuyo", "bench", "--scans", "5", "--seconds", "0.05"]) == 0
+    out = capsys.readouterr().out
+    assert "hokuyolx is not installed: comparison skipped" in out
+    assert "ours:" in out and "hokuyolx:" not in out
