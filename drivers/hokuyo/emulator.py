@@ -181,12 +181,12 @@ def sim_scan_source(world, laser_pose_fn: Callable[[float], np.ndarray], seed: i
     in the map frame at emulated time t. ``world`` is a World or a built-in name / path. When the simulator
     gives first and last echoes, both are served (multi-echo commands see them). ``on_scan(pose, sim)``, if
     given, sees every simulated scan (e.g. to record which cells were seen)."""
-    from glassmap.sim.laser import LaserParams, simulate_scan
+    from glassmap.sim.laser import simulate_scan, world_laser_params
     from glassmap.sim.world import load_world
 
     w = load_world(world) if isinstance(world, str) else world
     rng = np.random.default_rng(seed)
-    p = params or LaserParams()
+    p = params or world_laser_params(w)
 
     def source(t: float) -> tuple[np.ndarray, np.ndarray]:
         pose = np.asarray(laser_pose_fn(t), np.float64)

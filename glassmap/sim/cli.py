@@ -100,8 +100,10 @@ def _worlds(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from glassmap.sim.dataset import simulate_run
-    from glassmap.sim.laser import LaserParams
+    from glassmap.sim.laser import world_laser_params
     from glassmap.sim.robot import OdometryNoise
 
     world = _load(args.world)
@@ -110,7 +112,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: world {world.name!r} has no route {route!r}; routes: {sorted(world.routes)}", file=sys.stderr)
         return 2
     out = args.out or os.path.join("out", "sim", f"{world.name}-{route}-s{args.seed}.npz")
-    run = simulate_run(world, route, seed=args.seed, laser_params=LaserParams(multi_echo=not args.no_multi_echo),
+    laser = replace(world_laser_params(world), multi_echo=not args.no_multi_echo)
+    run = simulate_run(world, route, seed=args.seed, laser_params=laser,
                        odom_noise=OdometryNoise.none() if args.perfect_odometry else OdometryNoise(),
                        max_v=args.max_v, max_omega=math.radians(args.max_omega_deg), progress=not args.no_progress)
     path = run.save(out, compress=not args.uncompressed)

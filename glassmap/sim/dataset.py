@@ -16,7 +16,7 @@ from typing import Iterator
 
 import numpy as np
 
-from glassmap.sim.laser import LaserParams, simulate_scan
+from glassmap.sim.laser import LaserParams, simulate_scan, world_laser_params
 from glassmap.sim.robot import DiffDriveRobot, OdometryNoise, RobotParams, RouteFollower, compose
 from glassmap.sim.world import World, load_world
 from glassmap.types import LaserGeometry, Odometry, Scan
@@ -150,13 +150,14 @@ def _sweep_end_pose(robot: DiffDriveRobot, geometry: LaserGeometry) -> np.ndarra
 
 
 def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed: int = 0, *,
-                 laser_params: LaserParams = LaserParams(), geometry: LaserGeometry = LaserGeometry(),
+                 laser_params: LaserParams | None = None, geometry: LaserGeometry = LaserGeometry(),
                  robot_params: RobotParams = RobotParams(), odom_noise: OdometryNoise = OdometryNoise(),
                  scan_rate: float = 40.0, odom_rate: float = 10.0, max_v: float = 0.5,
                  max_omega: float = math.radians(60), max_duration: float = 600.0,
                  sweep_motion: bool = False, progress: bool = False) -> SimRun:
     """Drive ``route`` (a route name of the world, waypoints (k, 2) in the map frame, or None = the world's
-    default route) from the route's first waypoint, heading along its first leg; record scans at
+    default route) from the route's first waypoint (``laser_params`` None: the world's, see
+    ``world_laser_params``), heading along its first leg; record scans at
     ``scan_rate`` Hz and odometry at ``odom_rate`` Hz until the robot has stopped at the last waypoint.
 
     The route follower steers on the true pose (the simulated robot drives where the route says). The same
@@ -167,6 +168,7 @@ def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed
     Raises ValueError if the rates do not divide or the route is not finished within ``max_duration`` s.
     """
     w = load_world(world) if isinstance(world, str) else world
+    laser_params = laser_params if laser_params is not None else world_laser_params(w)
     if isinstance(route, str) or route is None:
         route_name = route if route is not None else (w.default_route or "")
         waypoints = w.route(route)

@@ -57,7 +57,9 @@ class LaserParams:
         transmission (Schlick: R(alpha) = R0 + (1 - R0) (1 - cos alpha)^5; a pane passes
         transmission * (1 - R(alpha)) / (1 - R0) per pass, so glass gets darker to see through at grazing
         incidence). Set to None to make the transmission independent of the angle.
-    multi_echo: also compute the last echo (a wall behind a glass pane that returned the first echo).
+    multi_echo: also compute the last echo (the farthest of several detected echoes of a beam).
+    mirror_reflections: model one specular bounce on glass and mirroring materials: a beam can return from
+        a surface seen in the mirror and report the unfolded path length (a ghost point behind the mirror).
     """
 
     intensity_scale: float = 6000.0
@@ -80,6 +82,11 @@ class LaserParams:
     glass_return_prob: float = 0.85
     glass_fresnel_r0: float | None = 0.04
     multi_echo: bool = True
+    mirror_reflections: bool = True
+
+
+# beam truth classes (SimScan.truth_class)
+TRUTH_NONE, TRUTH_OTHER, TRUTH_GLASS, TRUTH_GHOST = -1, 0, 1, 2
 
 
 @dataclass
@@ -94,6 +101,10 @@ class SimScan:
     incidence: true incidence angle (rad, 0 = along the surface normal) on that surface; NaN if none.
     is_glass: the return (first echo) came from glass. crossed_glass: the beam passed through at least one
         glass pane before that surface (for no-return beams: anywhere along its path).
+    is_ghost: the first echo is a mirror image: the beam was reflected by ``mirror_segment`` (a glass pane
+        or a mirroring surface) and returned from the surface described by true_range / material / segment /
+        incidence, true_range being the unfolded path length (laser -> mirror -> surface). The reported
+        point lies behind the mirror. mirror_segment: -1 for every other beam.
     echo_ranges, echo_intensities: (n, 2) first and last echo (multi-echo); the last echo is NaN when the
         beam had a single echo. None when multi_echo is off.
     laser_pose: (3,) the laser pose (x, y, yaw) in the map frame used for the scan.
@@ -111,6 +122,22 @@ class SimScan:
     geometry: LaserGeometry = field(default_factory=LaserGeometry)
     echo_ranges: np.ndarray | None = None
     echo_intensities: np.ndarray | None = None
+    is_ghost: np.ndarray | None = None
+    mirror_segment: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = self.ranges.shape[0]
+        if self.is_ghost is None:
+            self.is_ghost = np.zeros(n, dtype=bool)
+        if self.mirror_segment is None:
+            self.mirror_segment = np.full(n, -1, dtype=np.int64)
+
+    @property
+    def truth_class(self) -> np.ndarray:
+        """Per beam: TRUTH_GHOST (2) mirror image, TRUTH_GLASS (1) glass, TRUTH_OTHER (0) any other return,
+        TRUTH_NONE (-1) no valid reading."""
+        out = np.where(self.is_ghost, TRUTH_GHOST, np.where(self.is_glass, TRUTH_GLASS, TRUTH_OTHER))
+        return np.where(np.isfinite(self.ranges), out, TRUTH_NONE)
 
     def to_scan(self, stamp: float = 0.0, seq: int = 0) -> Scan:
         """The measurement part as a ``glassmap.types.Scan`` (echoes = [first, last] when multi-echo)."""
@@ -134,7 +161,11 @@ class _Optics:
         self.no_return = pick(lambda m: m.no_return_prob)
         self.log_t2 = pick(lambda m: 2.0 * math.log(max(m.transmission, 1e-12)))
         self.surf_rho = pick(lambda m: m.surface_rho)
+        self.mirror_r = pick(lambda m: 0.0 if m.is_glass else m.mirror_reflectance)
         self.kind = world.segment_kind.astype(np.int64)
+        opaque = self.kind != _GLASS
+        # largest diffuse + specular factor of an opaque surface: bounds what a mirror image can return
+        self.max_reflect = float((self.rho + self.spec)[opaque].max()) if opaque.any() else 0.0
         seg = world.segments
         self.a = seg[:, 0].copy()
         self.e = seg[:, 1] - seg[:, 0]
@@ -213,28 +244,123 @@ def cast_pairs(world: World, laser_pose: np.ndarray, geometry: LaserGeometry = L
     return beam[order], seg[order], t[order], cos_inc[order]
 
 
-def _cast_sweep(world: World, pose: np.ndarray, end_pose: np.ndarray, geometry: LaserGeometry, max_range: float,
-                opt: _Optics, chunks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`cast_pairs` for a moving laser: blocks of adjacent beams, each cast from the pose interpolated
-    (position linearly, yaw along the shorter way) at the block's middle beam."""
+def _sweep_chunks(pose: np.ndarray, end_pose: np.ndarray, geometry: LaserGeometry, chunks: int):
+    """(first beam, end beam, pose) of blocks of adjacent beams, each with the pose interpolated (position
+    linearly, yaw along the shorter way) at the block's middle beam."""
     n = geometry.n_beams
     edges = np.linspace(0, n, max(1, min(int(chunks), n)) + 1).round().astype(np.int64)
     dyaw = math.remainder(end_pose[2] - pose[2], 2 * math.pi)
-    parts = []
     for a, b in zip(edges[:-1], edges[1:]):
         if b <= a:
             continue
         f = (0.5 * (a + b - 1)) / max(n - 1, 1)
-        at = np.array([pose[0] + f * (end_pose[0] - pose[0]), pose[1] + f * (end_pose[1] - pose[1]), pose[2] + f * dyaw])
-        sub = replace(geometry, n_beams=int(b - a), angle_min=geometry.angle_min + a * geometry.angle_increment)
+        yield int(a), int(b), np.array([pose[0] + f * (end_pose[0] - pose[0]), pose[1] + f * (end_pose[1] - pose[1]),
+                                        pose[2] + f * dyaw])
+
+
+def _cast_sweep(world: World, pose: np.ndarray, end_pose: np.ndarray, geometry: LaserGeometry, max_range: float,
+                opt: _Optics, chunks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`cast_pairs` for a moving laser: blocks of adjacent beams, each cast from its block's pose."""
+    parts = []
+    for a, b, at in _sweep_chunks(pose, end_pose, geometry, chunks):
+        sub = replace(geometry, n_beams=b - a, angle_min=geometry.angle_min + a * geometry.angle_increment)
         bm, sg, tt, ci = cast_pairs(world, at, sub, max_range, opt)
         parts.append((bm + a, sg, tt, ci))
     return tuple(np.concatenate(x) for x in zip(*parts))  # type: ignore[return-value]
 
 
-def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: LaserParams = LaserParams(),
+def cast_mirrored(opt: _Optics, pose: np.ndarray, geometry: LaserGeometry, beams: np.ndarray, mirror: np.ndarray,
+                  t_mirror: np.ndarray, max_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Intersections of reflected beams with the world, sorted by beam then path length.
+
+    Beam ``beams[i]`` of a laser at ``pose`` is reflected by segment ``mirror[i]`` at range ``t_mirror[i]``.
+    Reflecting the laser across the mirror's line gives a virtual laser from which the reflected ray is a
+    straight ray; its hits beyond the mirror are the surfaces seen in the mirror, at the unfolded path
+    length. As in :func:`cast_pairs`, each (mirror, segment) pair is first mapped to the interval of beam
+    indices it can meet, and only those (beam, segment) pairs are intersected. Returns (beam, segment,
+    path length (m), cosine of the incidence angle on that segment), each (h,).
+    """
+    x, y, yaw = (float(v) for v in pose)
+    n = geometry.n_beams
+    inc = geometry.angle_increment
+    two_pi = 2 * math.pi
+    mirrors, inv = np.unique(mirror, return_inverse=True)
+    nm = mirrors.size
+    bmin = np.full(nm, n, dtype=np.int64)
+    bmax = np.full(nm, -1, dtype=np.int64)
+    np.minimum.at(bmin, inv, beams)
+    np.maximum.at(bmax, inv, beams)
+    ux = opt.e[mirrors, 0] * opt.inv_len[mirrors]
+    uy = opt.e[mirrors, 1] * opt.inv_len[mirrors]
+    dist = (x - opt.a[mirrors, 0]) * -uy + (y - opt.a[mirrors, 1]) * ux  # signed distance to the mirror line
+    vx = x + 2.0 * dist * uy  # the virtual laser: the laser reflected across the mirror's line
+    vy = y - 2.0 * dist * ux
+    phi2 = 2.0 * np.arctan2(uy, ux)
+    # angular interval of every segment seen from every virtual laser: (mirrors, segments)
+    ax = opt.a[None, :, 0] - vx[:, None]
+    ay = opt.a[None, :, 1] - vy[:, None]
+    ang_a = np.arctan2(ay, ax)
+    sweep = np.arctan2(ay + opt.e[None, :, 1], ax + opt.e[None, :, 0]) - ang_a
+    sweep = np.where(sweep > math.pi, sweep - two_pi, np.where(sweep < -math.pi, sweep + two_pi, sweep))
+    start = np.where(sweep >= 0, ang_a, ang_a + sweep)
+    width = np.abs(sweep)
+    # reflected direction of beam b: phi2 - (yaw + angle_min + b inc); inside [start, start + width] when
+    # b inc lies in [phi2 - yaw - angle_min - start - width, ... + width] (mod 2 pi)
+    rel = np.mod(phi2[:, None] - yaw - geometry.angle_min - start - width, two_pi)
+    k0 = np.floor(rel / inc)
+    k1 = np.ceil((rel + width) / inc)
+    k0b = np.floor((rel - two_pi) / inc)
+    k1b = np.ceil((rel + width - two_pi) / inc)
+    lo = np.maximum(np.concatenate([k0, k0b], axis=1), bmin[:, None])
+    hi = np.minimum(np.concatenate([k1, k1b], axis=1), bmax[:, None])
+    lo = lo.astype(np.int64).ravel()
+    hi = hi.astype(np.int64).ravel()
+    m = len(opt.a)
+    pj = np.repeat(np.arange(nm), 2 * m)
+    pk = np.tile(np.concatenate([np.arange(m), np.arange(m)]), nm)
+    cnt = np.maximum(hi - lo + 1, 0)
+    total = int(cnt.sum())
+    jj = np.repeat(pj, cnt)
+    kk = np.repeat(pk, cnt)
+    ends = np.cumsum(cnt)
+    bb = np.arange(total) - np.repeat(ends - cnt - lo, cnt)
+    # keep the pairs whose beam is reflected by this mirror
+    beam_mirror = np.full(n, -1, dtype=np.int64)
+    beam_mirror[beams] = inv
+    t_min = np.zeros(n)
+    t_min[beams] = t_mirror
+    ok = (beam_mirror[bb] == jj) & (kk != mirrors[jj])
+    bb, jj, kk = bb[ok], jj[ok], kk[ok]
+    ang = phi2[jj] - (yaw + geometry.angles[bb])
+    dx = np.cos(ang)
+    dy = np.sin(ang)
+    sax = opt.a[kk, 0] - vx[jj]
+    say = opt.a[kk, 1] - vy[jj]
+    ex = opt.e[kk, 0]
+    ey = opt.e[kk, 1]
+    den = dx * ey - dy * ex
+    with np.errstate(divide="ignore", invalid="ignore"):
+        invd = 1.0 / den
+        t = (sax * ey - say * ex) * invd
+        u = (sax * dy - say * dx) * invd
+    ok = (t > t_min[bb] + 1e-6) & (t <= max_range) & (u >= 0.0) & (u <= 1.0)
+    bb, kk, t, den = bb[ok], kk[ok], t[ok], den[ok]
+    cos_inc = np.minimum(np.abs(den) * opt.inv_len[kk], 1.0)
+    order = np.argsort(bb * (2.0 * max_range + 1.0) + t)
+    return bb[order], kk[order], t[order], cos_inc[order]
+
+
+def world_laser_params(world: World, base: LaserParams | None = None) -> LaserParams:
+    """``base`` (default: ``LaserParams()``) with the world's ``[laser]`` overrides applied."""
+    b = base if base is not None else LaserParams()
+    return replace(b, **world.laser) if world.laser else b
+
+
+def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: LaserParams | None = None,
                   geometry: LaserGeometry = LaserGeometry(), end_pose=None, sweep_chunks: int = 16) -> SimScan:
     """Simulate one scan from ``laser_pose`` (x, y, yaw of the laser in the map frame; m, rad).
+
+    ``params``: the laser model; None = ``world_laser_params(world)`` (defaults plus the world's overrides).
 
     ``end_pose``: the laser pose when the last beam is taken; beams are then cast from poses interpolated
     linearly between the two over the sweep (in ``sweep_chunks`` blocks of adjacent beams, each from the
@@ -243,7 +369,7 @@ def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: La
     """
     pose = np.asarray(laser_pose, dtype=np.float64)
     n = geometry.n_beams
-    p = params
+    p = params if params is not None else world_laser_params(world)
     opt = _optics(world, p)
     if end_pose is None:
         beam, seg, t, cos_inc = cast_pairs(world, pose, geometry, p.max_reading, opt)
@@ -308,17 +434,96 @@ def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: La
     term_det = np.zeros(n, dtype=bool)
     term_det[tb] = t_det
 
-    # Primary return: the first returning pane, else the terminal hit if detected.
-    from_glass = glass_hit >= 0
-    gb = np.flatnonzero(from_glass)
+    # Random draws of the range noise and dropouts (before the mirror images' draws).
+    z_range = rng.standard_normal(n)
+    dropped = rng.random(n) < p.dropout_prob
+
+    # Mirror images: one specular bounce on the first mirroring surface of each beam.
+    ghost_t = np.full(n, np.inf)
+    ghost_int = np.zeros(n)
+    ghost_seg = np.full(n, -1, dtype=np.int64)
+    ghost_cos = np.ones(n)
+    mirror_seg = np.full(n, -1, dtype=np.int64)
+    if p.mirror_reflections and opt.max_reflect > 0:
+        mir = np.full(n, -1, dtype=np.int64)  # index into the hit arrays of the mirroring surface
+        tb_m = tb[opt.mirror_r[seg[ti]] > 0]
+        mir[tb_m] = term[tb_m]
+        if g_idx.size:
+            mir[g_beam[g_first]] = g_idx[g_first]  # the first pane in front of the terminal hit
+        mb = np.flatnonzero(mir >= 0)
+        mh = mir[mb]
+        r0 = p.glass_fresnel_r0 if p.glass_fresnel_r0 is not None else 0.04
+        refl = np.where(kind[mh] == _GLASS, r0 + (1.0 - r0) * (1.0 - cos_inc[mh]) ** 5, opt.mirror_r[seg[mh]])
+        # an image can only be detected if the brightest opaque surface at the mirror's range would be
+        # (the distance term only falls with the longer path; noise bound 4 sigma)
+        bound = gain[mh] * refl * refl * opt.max_reflect * math.exp(4.0 * p.intensity_noise)
+        keep = bound >= p.detection_threshold
+        mb, mh, refl = mb[keep], mh[keep], refl[keep]
+        if mb.size:
+            if end_pose is None:
+                parts = [cast_mirrored(opt, pose, geometry, mb, seg[mh], t[mh], p.max_reading)]
+            else:
+                parts = []
+                for a0, b0, at in _sweep_chunks(pose, np.asarray(end_pose, dtype=np.float64), geometry,
+                                                sweep_chunks):
+                    sel = (mb >= a0) & (mb < b0)
+                    if sel.any():
+                        parts.append(cast_mirrored(opt, at, geometry, mb[sel], seg[mh[sel]], t[mh[sel]],
+                                                   p.max_reading))
+            if parts:
+                bm2, sg2, t2, c2 = (np.concatenate(x) for x in zip(*parts))
+            else:
+                bm2 = sg2 = np.zeros(0, dtype=np.int64)
+                t2 = c2 = np.zeros(0)
+            glass2 = opt.kind[sg2] == _GLASS
+            op2 = np.flatnonzero(~glass2)
+            q = op2[_group_first(bm2[op2])]  # first opaque surface seen in the mirror
+            q_end = np.full(n, np.inf)
+            q_end[bm2[q]] = t2[q]
+            pane2 = glass2 & (t2 < q_end[bm2])  # panes on the reflected path attenuate it
+            att2 = np.bincount(bm2[pane2], weights=opt.log_t2[sg2[pane2]], minlength=n)
+            refl_b = np.zeros(n)
+            refl_b[mb] = refl
+            qb, qs, qt, qc = bm2[q], sg2[q], t2[q], c2[q]
+            qa = np.arccos(qc)
+            q_int = (p.intensity_scale * (p.reference_range / np.maximum(qt, p.near_range)) ** p.range_exponent
+                     * refl_b[qb] ** 2 * np.exp(att2[qb])
+                     * (opt.rho[qs] * qc ** opt.cos_k[qs] + opt.spec[qs] * np.exp(-(qa * qa) * opt.inv2s2[qs])))
+            q_int = q_int * np.exp(p.intensity_noise * rng.standard_normal(qb.size))
+            q_det = (q_int >= p.detection_threshold) & (rng.random(qb.size) >= opt.no_return[qs])
+            qb, qs, qt, qc, q_int = qb[q_det], qs[q_det], qt[q_det], qc[q_det], q_int[q_det]
+            ghost_t[qb] = qt
+            ghost_int[qb] = q_int
+            ghost_seg[qb] = qs
+            ghost_cos[qb] = qc
+            mirror_seg[qb] = seg[mir[qb]]
+
+    # Echoes: the first returning pane, the terminal hit if detected, the mirror image if detected; the
+    # first echo is the nearest.
+    from_pane = glass_hit >= 0
+    gb = np.flatnonzero(from_pane)
     gpos = glass_hit[gb]
+    cand_t = np.full((3, n), np.inf)
+    cand_t[0, gb] = t[g_idx[gpos]]
+    cand_t[1] = np.where(term_det, t_term, np.inf)
+    cand_t[2] = ghost_t
+    cand_i = np.zeros((3, n))
+    cand_i[0, gb] = g_int[gpos]
+    cand_i[1] = np.where(term_det, term_int, 0.0)
+    cand_i[2] = ghost_int
+    first = np.argmin(cand_t, axis=0)
+    n_echo = np.isfinite(cand_t).sum(axis=0)
+    returned = n_echo > 0
+    from_glass = returned & (first == 0)
+    ghost = returned & (first == 2)
+    cols = np.arange(n)
+
     hit = np.where(has_term, term, -1)  # index into hit arrays describing the beam's surface
-    hit[gb] = g_idx[gpos]
-    returned = from_glass | term_det
-    intensity = np.where(term_det, term_int, 0.0)
-    intensity[gb] = g_int[gpos]
+    hit[from_glass] = g_idx[glass_hit[from_glass]]
+    intensity = np.where(returned, cand_i[first, cols], 0.0)
     crossed = n_glass_front > 0
-    crossed[gb] = g_rank[gpos] > 0
+    crossed[from_glass] = g_rank[glass_hit[from_glass]] > 0
+    crossed[ghost] = False
 
     any_hit = hit >= 0
     hi = hit[any_hit]
@@ -330,13 +535,17 @@ def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: La
     segment[any_hit] = seg[hi]
     incidence = np.full(n, np.nan)
     incidence[any_hit] = alpha[hi]
+    true_range[ghost] = ghost_t[ghost]
+    material[ghost] = opt.kind[ghost_seg[ghost]]
+    segment[ghost] = ghost_seg[ghost]
+    incidence[ghost] = np.arccos(ghost_cos[ghost])
+    mirror_seg[~ghost] = -1
 
     sigma = p.range_noise + p.range_noise_slope * np.where(np.isfinite(true_range), true_range, 0.0)
-    noise = sigma * rng.standard_normal(n)
+    noise = sigma * z_range
     ranges = np.where(returned, true_range + noise, np.inf)
     ranges = np.where(returned & (ranges > p.max_reading), np.inf, ranges)
     ranges = np.where(returned & (ranges < p.min_reading), np.nan, ranges)
-    dropped = rng.random(n) < p.dropout_prob
     ranges[dropped] = np.nan
     intensity = np.minimum(np.where(np.isfinite(ranges), intensity, 0.0), p.saturation)
 
@@ -346,13 +555,16 @@ def simulate_scan(world: World, laser_pose, rng: np.random.Generator, params: La
         echo_i = np.zeros((n, 2))
         echo_r[:, 0] = ranges
         echo_i[:, 0] = intensity
-        second = from_glass & term_det & ~dropped
-        sb = np.flatnonzero(second)
-        r2 = t_term[sb] + (p.range_noise + p.range_noise_slope * t_term[sb]) * rng.standard_normal(sb.size)
+        z_echo = rng.standard_normal(n)
+        sb = np.flatnonzero((n_echo >= 2) & ~dropped)
+        last = np.argmax(np.where(np.isfinite(cand_t), cand_t, -1.0), axis=0)[sb]
+        t_last = cand_t[last, sb]
+        r2 = t_last + (p.range_noise + p.range_noise_slope * t_last) * z_echo[sb]
         r2 = np.where(r2 > p.max_reading, np.inf, r2)
         echo_r[sb, 1] = r2
-        echo_i[sb, 1] = np.minimum(term_int[sb], p.saturation)
+        echo_i[sb, 1] = np.minimum(cand_i[last, sb], p.saturation)
 
     return SimScan(ranges=ranges, intensities=intensity, true_range=true_range, material=material,
-                   incidence=incidence, is_glass=from_glass.copy(), crossed_glass=crossed, segment=segment,
-                   laser_pose=pose, geometry=geometry, echo_ranges=echo_r, echo_intensities=echo_i)
+                   incidence=incidence, is_glass=from_glass, crossed_glass=crossed, segment=segment,
+                   laser_pose=pose, geometry=geometry, echo_ranges=echo_r, echo_intensities=echo_i,
+                   is_ghost=ghost, mirror_segment=mirror_seg)

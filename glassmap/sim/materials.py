@@ -47,6 +47,9 @@ class Material:
     transmission: GLASS only, fraction of the power that passes one pane (per pass; a return from behind is
         attenuated by transmission^2 per pane crossed).
     surface_rho: GLASS only, reflectivity of the weak surface return inside the angular window.
+    mirror_reflectance: fraction of the power a non-glass surface reflects as a mirror (one specular bounce,
+        independent of the angle; polished metal). Glass reflects by Fresnel's law instead (see
+        ``LaserParams.glass_fresnel_r0``).
     """
 
     name: str
@@ -58,12 +61,14 @@ class Material:
     no_return_prob: float = 0.0
     transmission: float = 0.0
     surface_rho: float = 0.0
+    mirror_reflectance: float = 0.0
 
     def __post_init__(self) -> None:
         if self.rho < 0 or self.specular_gain < 0 or self.surface_rho < 0:
             raise ValueError(f"material {self.name!r}: rho, specular_gain and surface_rho must be >= 0")
-        if not 0 <= self.no_return_prob <= 1 or not 0 <= self.transmission <= 1:
-            raise ValueError(f"material {self.name!r}: no_return_prob and transmission must be in [0, 1]")
+        if not all(0 <= v <= 1 for v in (self.no_return_prob, self.transmission, self.mirror_reflectance)):
+            raise ValueError(f"material {self.name!r}: no_return_prob, transmission and mirror_reflectance must "
+                             f"be in [0, 1]")
         if self.lobe_width <= 0:
             raise ValueError(f"material {self.name!r}: lobe_width must be > 0 rad")
         if self.cos_exponent is not None and self.cos_exponent < 0:
@@ -83,8 +88,8 @@ KIND_DEFAULTS: dict[MaterialKind, dict[str, float]] = {
     MaterialKind.GLASS: dict(rho=0.0, specular_gain=40.0, lobe_width=math.radians(0.3), transmission=0.92,
                              surface_rho=0.12),
     MaterialKind.FRAME: dict(rho=0.45, specular_gain=0.3, lobe_width=math.radians(3.0)),
-    # Polished metal: weak diffuse part, a bright lobe a few degrees wide.
-    MaterialKind.METAL: dict(rho=0.25, specular_gain=8.0, lobe_width=math.radians(2.5)),
+    # Polished metal: weak diffuse part, a bright lobe a few degrees wide, half the power mirrored.
+    MaterialKind.METAL: dict(rho=0.25, specular_gain=8.0, lobe_width=math.radians(2.5), mirror_reflectance=0.5),
     # Whiteboard: bright diffuse part plus a wider, weaker lobe.
     MaterialKind.WHITEBOARD: dict(rho=0.8, specular_gain=2.5, lobe_width=math.radians(4.0)),
     # Retroreflective tape: very bright almost independent of angle.

@@ -51,6 +51,8 @@ class World:
     segment_source: (m,) key path of the file element each segment came from (for messages).
     routes: name -> (k, 2) waypoints (metres); ``default_route`` names the one used when none is given.
     start_pose: (3,) x, y (m), yaw (rad) where the robot starts.
+    laser: overrides of ``glassmap.sim.laser.LaserParams`` fields for this world (the ``[laser]`` table;
+        angles in rad), applied by ``glassmap.sim.laser.world_laser_params``.
     """
 
     name: str
@@ -63,6 +65,7 @@ class World:
     description: str = ""
     path: str | None = None
     segment_source: list[str] = field(default_factory=list)
+    laser: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.segments = np.asarray(self.segments, dtype=np.float64).reshape(-1, 2, 2)
@@ -185,9 +188,14 @@ def parse_world(text: str, file: str = "<string>", default_name: str = "world") 
 
 
 _TOP_KEYS = {"name", "description", "start", "default_route", "materials", "segments", "polylines", "boxes",
-             "panes", "circles", "routes"}
+             "panes", "circles", "routes", "laser"}
+# [laser] keys: LaserParams fields (the *_deg keys are given in degrees and stored in radians)
+LASER_KEYS = {"intensity_scale", "reference_range", "near_range", "range_exponent", "cos_exponent",
+              "intensity_noise", "saturation", "detection_threshold", "range_noise", "range_noise_slope",
+              "dropout_prob", "min_reading", "max_reading", "glass_window_deg", "glass_window_ref_range",
+              "glass_window_exponent", "glass_window_min_deg", "glass_return_prob", "glass_fresnel_r0"}
 _MATERIAL_KEYS = {"kind", "rho", "cos_exponent", "specular_gain", "lobe_width_deg", "no_return_prob",
-                  "transmission", "surface_rho"}
+                  "transmission", "surface_rho", "mirror_reflectance"}
 
 
 class _Builder:
@@ -321,7 +329,22 @@ class _Builder:
         return World(name=name, segments=np.array(self.segs, dtype=np.float64).reshape(-1, 2, 2),
                      segment_material=np.array(self.mats, dtype=np.int64), materials=self.materials,
                      routes=routes, start_pose=start_pose, default_route=default_route,
-                     description=description, path=self.file, segment_source=self.src)
+                     description=description, path=self.file, segment_source=self.src,
+                     laser=self.build_laser(doc.get("laser", {})))
+
+    def build_laser(self, tbl: Any) -> dict[str, float]:
+        tbl = self.table(tbl, "laser", LASER_KEYS)
+        out = {}
+        for name in tbl:
+            v = self.number(tbl, name, "laser", nonneg=True)
+            if name.endswith("_deg"):
+                out[name[:-4]] = math.radians(v)
+            else:
+                out[name] = v
+        for f in ("dropout_prob", "glass_return_prob", "glass_fresnel_r0"):
+            if not 0 <= out.get(f, 0.0) <= 1:
+                raise self.err(f"laser.{f}", f"must be between 0 and 1, got {out[f]!r}")
+        return out
 
     def build_materials(self, mats: Any) -> None:
         table = dict(BUILTIN_MATERIALS)
@@ -336,12 +359,13 @@ class _Builder:
                 raise self.err(f"{k}.kind", f"unknown kind {kind_name!r}; one of {sorted(KIND_BY_NAME)}")
             kind = KIND_BY_NAME[kind_name.lower()]
             params: dict[str, Any] = dict(KIND_DEFAULTS[kind])
-            for f in ("rho", "specular_gain", "no_return_prob", "transmission", "surface_rho", "cos_exponent"):
+            for f in ("rho", "specular_gain", "no_return_prob", "transmission", "surface_rho", "cos_exponent",
+                      "mirror_reflectance"):
                 if f in spec:
                     params[f] = self.number(spec, f, k, nonneg=True)
             if "lobe_width_deg" in spec:
                 params["lobe_width"] = math.radians(self.number(spec, "lobe_width_deg", k, positive=True))
-            for f in ("no_return_prob", "transmission"):
+            for f in ("no_return_prob", "transmission", "mirror_reflectance"):
                 if not 0 <= params.get(f, 0.0) <= 1:
                     raise self.err(f"{k}.{f}", f"must be between 0 and 1, got {params[f]!r}")
             table[name] = Material(name=name, kind=kind, **params)
