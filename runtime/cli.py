@@ -152,6 +152,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_out(b, "out/bench")
     b.set_defaults(func=cmd_bench)
 
+    e = sub.add_parser(
+        "benchmark", help="generalisation benchmark: the pipeline on generated test worlds + the built-in ones",
+        description="Run the classifier, the glass map with true poses, the paper's experiment (direct vs robust "
+        "3x3 / 5x5 under pose error), the pose estimator and the runtime demo on generated test worlds (seeds "
+        "0-99, never used for training or tuning) and the built-in worlds; report per world and aggregated "
+        "(mean and worst world) to CSV, JSON and a figure.")
+    from runtime.benchmark import add_arguments, cmd as cmd_benchmark
+
+    add_arguments(e)
+    e.set_defaults(func=cmd_benchmark)
+
     c = sub.add_parser(
         "recover", help="repair an MCAP recording cut short by a crash (adds index and footer)",
         description="A recording interrupted by a crash or SIGKILL holds every completed chunk but no "

@@ -1,0 +1,543 @@
+"""The generalisation benchmark (``glassmap eval``): the pipeline on worlds nobody tuned on.
+
+A driver of existing functions over many worlds, never a second implementation: the classifier's beams
+(``glassmap.train.simulate_beams`` + ``GlassClassifier`` + ``glassmap.eval.metrics.binary_report``), the
+paper's experiment (``glassmap.eval.trial.run_trial``: with true poses, and direct vs robust 3x3 / 5x5
+under pose error), the pose estimator (``glassmap.pose.evaluate.evaluate_run``) and the runtime demo
+(``runtime.demo.run_demo``) against emulated devices. Worlds: generated test worlds (seeds from
+``glassmap.sim.seeds.TEST_SEEDS``) plus the built-in ones. Work units run in a process pool (or on a Dask
+cluster); results go to CSV + JSON + one summary figure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+PARTS = ("classifier", "map", "experiment", "pose", "demo")
+BUILTIN = ("office", "glass-corridor", "room", "lobby")
+METHODS = ("direct", "robust3", "robust5")
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """What to run. generated: how many generated test worlds (world seeds 0 .. generated - 1);
+    builtin: built-in worlds added; worlds: other world files added; seeds: run seeds (robot, laser and pose-error noise) per world;
+    route: route name used where a world has it ("short": the generated worlds' first ~30 m), None = each
+    world's default route; classifier_poses: scans of labelled beams per world and seed; trials: trials
+    of the paper's experiment per world and seed, with sigma_xy (m) / sigma_theta_deg of pose error;
+    demo_speed: the demo's speed-up over real time; parts: which of PARTS to run."""
+
+    generated: int = 20
+    builtin: tuple[str, ...] = BUILTIN
+    worlds: tuple[str, ...] = ()
+    seeds: tuple[int, ...] = (0, 1, 2)
+    route: str | None = None
+    classifier_poses: int = 200
+    trials: int = 5
+    sigma_xy: float = 0.05
+    sigma_theta_deg: float = 0.25
+    demo_speed: float = 2.0
+    demo_duration: float | None = None
+    parts: tuple[str, ...] = PARTS
+    out_dir: str = "out/eval"
+
+    def __post_init__(self) -> None:
+        unknown = [p for p in self.parts if p not in PARTS]
+        if unknown:
+            raise ValueError(f"unknown part(s) {unknown}; parts: {', '.join(PARTS)}")
+        if self.generated < 0 or self.generated > 100:
+            raise ValueError(f"generated must be 0-100 (the test seeds), got {self.generated}")
+        if not self.seeds:
+            raise ValueError("need at least one seed")
+
+
+QUICK = BenchmarkConfig(generated=4, seeds=(0,), route="short", classifier_poses=60, trials=2, demo_speed=2.0,
+                        out_dir="out/eval-quick")
+
+
+@dataclass(frozen=True)
+class Task:
+    world: str  # label
+    path: str  # world file or built-in name
+    kind: str  # generated kind or "built-in"
+    part: str
+    seed: int
+    trial: int = 0
+
+
+@dataclass
+class TaskResult:
+    task: Task
+    rows: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+    error: str = ""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# worlds and tasks
+
+def prepare_worlds(cfg: BenchmarkConfig) -> list[tuple[str, str, str]]:
+    """(label, path or built-in name, kind) of every world; generated ones are written to out_dir/worlds."""
+    from glassmap.sim.generate import generate_world
+    from glassmap.sim.seeds import TEST_SEEDS
+
+    out = []
+    wdir = Path(cfg.out_dir) / "worlds"
+    for s in list(TEST_SEEDS)[: cfg.generated]:
+        gw = generate_world(s)
+        path = gw.save(wdir / f"gen-{gw.kind}-{s}.toml")
+        out.append((f"gen-{gw.kind}-{s}", str(path), gw.kind))
+    out.extend((name, name, "built-in") for name in cfg.builtin)
+    out.extend((Path(p).stem, p, "file") for p in cfg.worlds)
+    return out
+
+
+def make_tasks(cfg: BenchmarkConfig, worlds: list[tuple[str, str, str]]) -> list[Task]:
+    tasks = []
+    # slowest first, so the pool is not left waiting on one long task at the end
+    order = {"demo": 0, "pose": 1, "experiment": 2, "map": 3, "classifier": 4}
+    for part in sorted(cfg.parts, key=lambda p: order[p]):
+        for label, path, kind in worlds:
+            for seed in cfg.seeds:
+                n = cfg.trials if part == "experiment" else 1
+                tasks.extend(Task(label, path, kind, part, seed, i) for i in range(n))
+    return tasks
+
+
+def _route(world, cfg: BenchmarkConfig) -> str | None:
+    if cfg.route is not None and cfg.route in world.routes:
+        return cfg.route
+    return world.default_route
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the parts (each a call of the existing function)
+
+def _classifier(task: Task, cfg: BenchmarkConfig) -> list[dict]:
+    from glassmap.classifier import GlassClassifier
+    from glassmap.eval.metrics import binary_report
+    from glassmap.sim.laser import world_laser_params
+    from glassmap.sim.world import load_world
+    from glassmap.train import sample_poses, simulate_beams
+
+    world = load_world(task.path)
+    rng = np.random.default_rng(np.random.SeedSequence([task.seed, 11]))
+    poses = sample_poses(world, cfg.classifier_poses, rng)
+    beams = simulate_beams(world, poses, world_laser_params(world), rng)
+    clf = GlassClassifier.load_default()
+    p = clf.predict(np.expm1(beams.x[:, 0]), beams.x[:, 1], beams.x[:, 2])
+    rep = binary_report(beams.y, p)
+    return [dict(balanced_accuracy=rep.balanced_accuracy, precision=rep.precision, recall=rep.recall,
+                 roc_auc=rep.roc_auc, ece=rep.ece, ece_balanced=rep.ece_balanced, n_beams=rep.n,
+                 n_glass=rep.n_glass)]
+
+
+def _trial_config(task: Task, cfg: BenchmarkConfig, sigma_xy: float, sigma_theta: float, methods):
+    from glassmap.eval.pose_error import PoseErrorModel
+    from glassmap.eval.trial import TrialConfig
+    from glassmap.sim.world import load_world
+
+    world = load_world(task.path)
+    return TrialConfig(world=task.path, route=_route(world, cfg), methods=tuple(methods),
+                       pose_error=PoseErrorModel(sigma_xy=sigma_xy, sigma_theta=sigma_theta))
+
+
+def _map(task: Task, cfg: BenchmarkConfig) -> list[dict]:
+    from glassmap.eval.trial import run_trial
+
+    res = run_trial(_trial_config(task, cfg, 0.0, 0.0, ("direct", "robust3")), task.seed)
+    return [dict(method=m, **asdict(s)) for m, s in res.scores.items()]
+
+
+def _experiment(task: Task, cfg: BenchmarkConfig) -> list[dict]:
+    from glassmap.eval.trial import run_trial
+
+    tc = _trial_config(task, cfg, cfg.sigma_xy, math.radians(cfg.sigma_theta_deg), METHODS)
+    res = run_trial(tc, 1000 * task.seed + task.trial)
+    return [dict(method=m, **asdict(s)) for m, s in res.scores.items()]
+
+
+def _pose(task: Task, cfg: BenchmarkConfig) -> list[dict]:
+    from glassmap.pose.evaluate import evaluate_run
+    from glassmap.sim.world import load_world
+
+    m = evaluate_run(task.path, _route(load_world(task.path), cfg), task.seed)
+    return [dict(ate_rmse=m.ate_rmse, ate_max=m.ate_max, final_drift=m.final_drift, nees_mean=m.nees_mean,
+                 inside_95=m.inside_95, yaw_rmse_deg=m.yaw_rmse_deg, odom_ate_rmse=m.odom_ate_rmse,
+                 length_m=m.length_m, scans=m.scans)]
+
+
+def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
+    from glassmap.sim.world import load_world
+    from runtime.demo import DemoOptions, run_demo
+
+    world = load_world(task.path)
+    out = Path(cfg.out_dir) / "demo" / f"{task.world}-s{task.seed}"
+    opts = DemoOptions(world=task.path, route=_route(world, cfg), speed=cfg.demo_speed, seed=task.seed,
+                       out_dir=str(out), record=False, progress=False, duration=cfg.demo_duration)
+    res = asyncio.run(run_demo(opts))
+    ev = res.evaluation
+    s = res.summary
+    err = (float(np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2])))
+           if res.estimated_final_pose is not None else float("nan"))
+    return [dict(error=ev.error if ev else float("nan"), glass_recall=ev.glass_recall if ev else float("nan"),
+                 false_glass_rate=ev.false_glass_rate if ev else float("nan"),
+                 aligned_error=ev.aligned.error if ev is not None and ev.aligned is not None else float("nan"),
+                 final_pose_error=err, route_done=bool(res.route_done), scans_received=s.scans_received,
+                 scans_processed=s.scans_processed, dropped=s.dropped_overflow + s.dropped_stale)]
+
+
+_RUNNERS = {"classifier": _classifier, "map": _map, "experiment": _experiment, "pose": _pose, "demo": _demo}
+
+
+def run_task(task: Task, cfg: BenchmarkConfig) -> TaskResult:
+    """Run one work unit; failures are reported in the result, not raised."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+    t0 = time.perf_counter()
+    try:
+        rows = _RUNNERS[task.part](task, cfg)
+        return TaskResult(task, rows, time.perf_counter() - t0)
+    except Exception as exc:  # one failed world must not lose the others' results
+        return TaskResult(task, [], time.perf_counter() - t0, error=f"{type(exc).__name__}: {exc}")
+
+
+def _run_task_args(args: tuple[Task, BenchmarkConfig]) -> TaskResult:
+    return run_task(*args)
+
+
+def run_tasks(tasks: list[Task], cfg: BenchmarkConfig, *, workers: int | None = None,
+              dask_address: str | None = None, progress: bool = True) -> list[TaskResult]:
+    """All tasks in a process pool (default: one worker per core) or on a Dask cluster; in task order."""
+    results: list[TaskResult | None] = [None] * len(tasks)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), desc="benchmark", unit="task")
+    client = None
+    if dask_address:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise RuntimeError("a Dask cluster needs the 'distributed' package: pip install 'glassmap[dask]'") from None
+        client = Client(dask_address)
+        executor: concurrent.futures.Executor = client.get_executor()
+    elif (workers or os.cpu_count() or 1) <= 1:
+        executor = None  # type: ignore[assignment]
+    else:
+        executor = concurrent.futures.ProcessPoolExecutor(max_workers=min(workers or os.cpu_count() or 1,
+                                                                          max(1, len(tasks))))
+    try:
+        if executor is None:
+            for i, t in enumerate(tasks):
+                results[i] = run_task(t, cfg)
+                if bar is not None:
+                    bar.set_postfix_str(f"{t.world} {t.part}", refresh=False)
+                    bar.update(1)
+        else:
+            futs = {executor.submit(_run_task_args, (t, cfg)): i for i, t in enumerate(tasks)}
+            for fut in concurrent.futures.as_completed(futs):
+                i = futs[fut]
+                try:
+                    results[i] = fut.result()
+                except Exception as exc:  # a crashed worker
+                    results[i] = TaskResult(tasks[i], error=f"{type(exc).__name__}: {exc}")
+                if bar is not None:
+                    bar.set_postfix_str(f"{tasks[i].world} {tasks[i].part}", refresh=False)
+                    bar.update(1)
+    finally:
+        if executor is not None:
+            executor.shutdown(wait=True)
+        if bar is not None:
+            bar.close()
+        if client is not None:
+            client.close()
+    return results  # type: ignore[return-value]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# aggregation
+
+# per-world metric -> (part, selector, row field, True if higher is better)
+METRICS: dict[str, tuple[str, str | None, str, bool]] = {
+    "clf_balanced_accuracy": ("classifier", None, "balanced_accuracy", True),
+    "clf_glass_precision": ("classifier", None, "precision", True),
+    "clf_glass_recall": ("classifier", None, "recall", True),
+    "clf_calibration_error": ("classifier", None, "ece", False),
+    "map_error_true_poses": ("map", "robust3", "error", False),
+    "map_error_true_poses_direct": ("map", "direct", "error", False),
+    "exp_direct_mean": ("experiment", "direct", "error", False),
+    "exp_robust3_mean": ("experiment", "robust3", "error", False),
+    "exp_robust5_mean": ("experiment", "robust5", "error", False),
+    "pose_ate_rmse": ("pose", None, "ate_rmse", False),
+    "pose_final_drift": ("pose", None, "final_drift", False),
+    "pose_nees_mean": ("pose", None, "nees_mean", False),
+    "pose_inside_95": ("pose", None, "inside_95", True),
+    "demo_error": ("demo", None, "error", False),
+    "demo_glass_recall": ("demo", None, "glass_recall", True),
+}
+
+
+def _nanmean(v: list[float]) -> float:
+    a = np.asarray(v, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
+def per_world(results: list[TaskResult]) -> list[dict]:
+    """One row per world: the metrics of METRICS (means over seeds / trials), plus the experiment's worst
+    trial and standard deviation per method."""
+    worlds: dict[str, dict] = {}
+    for r in results:
+        w = worlds.setdefault(r.task.world, {"world": r.task.world, "kind": r.task.kind, "_rows": []})
+        w["_rows"].extend((r.task, row) for row in r.rows)
+    out = []
+    for w in worlds.values():
+        row = {"world": w["world"], "kind": w["kind"]}
+        for name, (part, sel, fld, _) in METRICS.items():
+            vals = [x[fld] for t, x in w["_rows"] if t.part == part and (sel is None or x.get("method") == sel)]
+            row[name] = _nanmean(vals)
+        for m in METHODS:
+            vals = np.array([x["error"] for t, x in w["_rows"] if t.part == "experiment" and x.get("method") == m])
+            row[f"exp_{m}_worst"] = float(vals.max()) if vals.size else float("nan")
+            row[f"exp_{m}_std"] = float(vals.std()) if vals.size else float("nan")
+        out.append(row)
+    return out
+
+
+def aggregate(world_rows: list[dict]) -> dict:
+    """Per group (generated, built-in, all): mean over worlds and the worst world of every metric."""
+    groups = {"generated": [r for r in world_rows if r["kind"] not in ("built-in", "file")],
+              "built-in": [r for r in world_rows if r["kind"] == "built-in"],
+              "files": [r for r in world_rows if r["kind"] == "file"], "all": world_rows}
+    better = {k: v[3] for k, v in METRICS.items()}
+    for m in METHODS:
+        better[f"exp_{m}_worst"] = False
+        better[f"exp_{m}_std"] = False
+    out: dict = {}
+    for g, rows in groups.items():
+        if not rows:
+            continue
+        gd = {}
+        for k, hb in better.items():
+            vals = [(r[k], r["world"]) for r in rows if np.isfinite(r.get(k, float("nan")))]
+            if not vals:
+                continue
+            v = np.array([x for x, _ in vals])
+            i = int(np.argmin(v) if hb else np.argmax(v))
+            gd[k] = {"mean": float(v.mean()), "worst": float(v[i]), "worst_world": vals[i][1], "worlds": len(v)}
+        out[g] = gd
+    return out
+
+
+def write_csv(path: Path, rows: list[dict]) -> Path:
+    keys: list[str] = []
+    for r in rows:
+        keys.extend(k for k in r if k not in keys)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    return path
+
+
+def summary_figure(path: Path, world_rows: list[dict]) -> Path:
+    """Four panels over worlds: classifier precision / recall, glass-map error (true poses; direct vs robust
+    3x3 under pose error), pose ATE, demo per-cell error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [r["world"] for r in world_rows]
+    x = np.arange(len(names))
+    fig, axes = plt.subplots(4, 1, figsize=(max(8, 0.45 * len(names) + 3), 12), sharex=True)
+    panels = [
+        ("classifier (shipped weights)", [("clf_glass_precision", "glass precision"),
+                                          ("clf_glass_recall", "glass recall"),
+                                          ("clf_balanced_accuracy", "balanced accuracy")]),
+        ("glass-map error", [("map_error_true_poses", "true poses, robust 3x3"),
+                             ("exp_direct_mean", "sigma 5 cm, direct"), ("exp_robust3_mean", "sigma 5 cm, robust 3x3")]),
+        ("pose", [("pose_ate_rmse", "ATE RMSE (m)"), ("pose_final_drift", "final drift (m)")]),
+        ("runtime demo", [("demo_error", "per-cell error"), ("demo_glass_recall", "glass recall")]),
+    ]
+    for ax, (title, series) in zip(axes, panels):
+        wdt = 0.8 / len(series)
+        for j, (k, label) in enumerate(series):
+            ax.bar(x + (j - (len(series) - 1) / 2) * wdt, [r.get(k, np.nan) for r in world_rows], wdt, label=label)
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=8, loc="upper right")
+        ax.grid(axis="y", alpha=0.3)
+    axes[-1].set_xticks(x)
+    axes[-1].set_xticklabels(names, rotation=60, ha="right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+@dataclass
+class BenchmarkReport:
+    config: BenchmarkConfig
+    worlds: list[dict]
+    summary: dict
+    failures: list[dict]
+    seconds: float
+    files: dict[str, str]
+
+
+def run_benchmark(cfg: BenchmarkConfig, *, workers: int | None = None, dask_address: str | None = None,
+                  progress: bool = True, figure: bool = True) -> BenchmarkReport:
+    """Prepare the worlds, run every task, write per_run.csv, per_world.csv, summary.json (and
+    summary.png) to ``cfg.out_dir``."""
+    t0 = time.perf_counter()
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    worlds = prepare_worlds(cfg)
+    tasks = make_tasks(cfg, worlds)
+    results = run_tasks(tasks, cfg, workers=workers, dask_address=dask_address, progress=progress)
+    raw = []
+    for r in results:
+        for row in r.rows:
+            raw.append(dict(world=r.task.world, kind=r.task.kind, part=r.task.part, seed=r.task.seed,
+                            trial=r.task.trial, seconds=round(r.seconds, 2), **row))
+    failures = [dict(world=r.task.world, part=r.task.part, seed=r.task.seed, trial=r.task.trial, error=r.error)
+                for r in results if r.error]
+    wrows = per_world(results)
+    summ = aggregate(wrows)
+    files = {"per_run": str(write_csv(out / "per_run.csv", raw)),
+             "per_world": str(write_csv(out / "per_world.csv", wrows))}
+    if figure and wrows:
+        files["figure"] = str(summary_figure(out / "summary.png", wrows))
+    seconds = time.perf_counter() - t0
+    part_seconds: dict[str, float] = {}
+    for r in results:
+        part_seconds[r.task.part] = part_seconds.get(r.task.part, 0.0) + r.seconds
+    doc = {"config": asdict(cfg), "workers": workers or (os.cpu_count() or 1), "dask": dask_address,
+           "seconds": seconds, "task_seconds_by_part": part_seconds, "summary": summ, "worlds": wrows,
+           "failures": failures}
+    (out / "summary.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    files["summary"] = str(out / "summary.json")
+    return BenchmarkReport(cfg, wrows, summ, failures, seconds, files)
+
+
+_LABELS = {
+    "clf_balanced_accuracy": "classifier balanced accuracy",
+    "clf_glass_precision": "classifier glass precision",
+    "clf_glass_recall": "classifier glass recall",
+    "clf_calibration_error": "classifier calibration error",
+    "map_error_true_poses": "glass-map error, true poses (robust 3x3)",
+    "exp_direct_mean": "experiment sigma 5 cm: direct, mean error",
+    "exp_robust3_mean": "experiment sigma 5 cm: robust 3x3, mean error",
+    "exp_robust5_mean": "experiment sigma 5 cm: robust 5x5, mean error",
+    "exp_direct_worst": "experiment: direct, worst trial",
+    "exp_robust3_worst": "experiment: robust 3x3, worst trial",
+    "pose_ate_rmse": "pose ATE RMSE (m)",
+    "pose_final_drift": "pose final drift (m)",
+    "pose_nees_mean": "pose mean NEES (ideal 3)",
+    "pose_inside_95": "pose share inside the 95 % bound",
+    "demo_error": "demo per-cell error",
+    "demo_glass_recall": "demo glass recall",
+}
+
+
+def format_report(rep: BenchmarkReport) -> str:
+    lines = []
+    groups = [g for g in ("generated", "built-in", "files") if g in rep.summary][:2]
+    head = f"{'metric':<48}" + "".join(f"{g + ' mean':>16}{g + ' worst':>16}  worst world" for g in groups[:1])
+    if len(groups) > 1:
+        head += f"  |{groups[1] + ' mean':>16}{groups[1] + ' worst':>16}"
+    lines.append(head)
+    for k, label in _LABELS.items():
+        parts = []
+        for gi, g in enumerate(groups):
+            d = rep.summary[g].get(k)
+            if d is None:
+                parts.append(f"{'-':>16}{'-':>16}" + ("  " + " " * 18 if gi == 0 else ""))
+                continue
+            cell = f"{d['mean']:>16.3f}{d['worst']:>16.3f}"
+            if gi == 0:
+                cell += f"  {d['worst_world']:<18}"
+            else:
+                cell = "|" + cell
+            parts.append(cell)
+        lines.append(f"{label:<48}" + "".join(parts))
+    lines.append(f"{len(rep.worlds)} worlds, {rep.seconds:.0f} s; files: " + ", ".join(rep.files.values()))
+    for f in rep.failures:
+        lines.append(f"FAILED {f['world']} {f['part']} seed {f['seed']} trial {f['trial']}: {f['error']}")
+    return "\n".join(lines)
+
+
+def config_from_args(args) -> BenchmarkConfig:
+    base = QUICK if args.quick else BenchmarkConfig()
+    changes: dict = {}
+    if args.generated is not None:
+        changes["generated"] = args.generated
+    if args.builtin is not None:
+        changes["builtin"] = tuple(w for w in args.builtin.split(",") if w)
+    if args.seeds is not None:
+        changes["seeds"] = tuple(int(s) for s in args.seeds.split(",") if s)
+    if args.route is not None:
+        changes["route"] = None if args.route == "default" else args.route
+    if args.trials is not None:
+        changes["trials"] = args.trials
+    if args.parts is not None:
+        changes["parts"] = tuple(p for p in args.parts.split(",") if p)
+    if args.demo_speed is not None:
+        changes["demo_speed"] = args.demo_speed
+    if args.classifier_poses is not None:
+        changes["classifier_poses"] = args.classifier_poses
+    if args.out is not None:
+        changes["out_dir"] = args.out
+    if args.world:
+        changes["worlds"] = tuple(args.world)
+    return replace(base, **changes)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--quick", action="store_true", help="4 generated + the 4 built-in worlds, one seed, short "
+                   "routes, 2 trials (within 10 minutes on 2 cores)")
+    p.add_argument("--world", action="append", default=None, metavar="FILE", help="also run on this world file "
+                   "(repeatable)")
+    p.add_argument("--generated", type=int, default=None, help="generated test worlds (seeds 0..N-1; default 20)")
+    p.add_argument("--builtin", default=None, help="comma-separated built-in worlds ('' = none; default all four)")
+    p.add_argument("--seeds", default=None, help="comma-separated run seeds (default 0,1,2; quick: 0)")
+    p.add_argument("--route", default=None, help="route used where a world has it, e.g. short; 'default' = each "
+                   "world's default route (default: the default route; quick: short)")
+    p.add_argument("--trials", type=int, default=None, help="paper-experiment trials per world and seed (default 5)")
+    p.add_argument("--parts", default=None, help=f"comma-separated parts (default all: {','.join(PARTS)})")
+    p.add_argument("--demo-speed", type=float, default=None, help="demo speed-up over real time (default 2)")
+    p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed")
+    p.add_argument("--out", default=None, help="output directory (default out/eval, quick: out/eval-quick)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: one per core)")
+    p.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address; "
+                   "needs pip install 'glassmap[dask]')")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def cmd(args) -> int:
+    import sys
+
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    rep = run_benchmark(cfg, workers=args.workers, dask_address=args.dask, progress=not args.no_progress)
+    print(format_report(rep))
+    return 1 if rep.failures else 0
