@@ -137,9 +137,15 @@ def _classifier(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     clf = GlassClassifier.load_default()
     p = clf.predict(np.expm1(beams.x[:, 0]), beams.x[:, 1], beams.x[:, 2])
     rep = binary_report(beams.y, p)
+    n_other = max(rep.n - rep.n_glass, 1)
+    false_glass = float(((p > 0.5) & ~beams.y).sum() / n_other)
+    nan = float("nan")
+    if rep.n_glass == 0:  # a world without glass: only the false glass rate and the calibration mean something
+        return [dict(balanced_accuracy=nan, precision=nan, recall=nan, roc_auc=nan, ece=rep.ece,
+                     ece_balanced=nan, false_glass_rate=false_glass, n_beams=rep.n, n_glass=0)]
     return [dict(balanced_accuracy=rep.balanced_accuracy, precision=rep.precision, recall=rep.recall,
-                 roc_auc=rep.roc_auc, ece=rep.ece, ece_balanced=rep.ece_balanced, n_beams=rep.n,
-                 n_glass=rep.n_glass)]
+                 roc_auc=rep.roc_auc, ece=rep.ece, ece_balanced=rep.ece_balanced, false_glass_rate=false_glass,
+                 n_beams=rep.n, n_glass=rep.n_glass)]
 
 
 def _trial_config(task: Task, cfg: BenchmarkConfig, sigma_xy: float, sigma_theta: float, methods):
@@ -279,6 +285,7 @@ METRICS: dict[str, tuple[str, str | None, str, bool]] = {
     "clf_glass_precision": ("classifier", None, "precision", True),
     "clf_glass_recall": ("classifier", None, "recall", True),
     "clf_calibration_error": ("classifier", None, "ece", False),
+    "clf_false_glass_rate": ("classifier", None, "false_glass_rate", False),
     "map_error_true_poses": ("map", "robust3", "error", False),
     "map_error_true_poses_direct": ("map", "direct", "error", False),
     "exp_direct_mean": ("experiment", "direct", "error", False),
@@ -366,7 +373,7 @@ def summary_figure(path: Path, world_rows: list[dict]) -> Path:
 
     names = [r["world"] for r in world_rows]
     x = np.arange(len(names))
-    fig, axes = plt.subplots(4, 1, figsize=(max(8, 0.45 * len(names) + 3), 12), sharex=True)
+    fig, axes = plt.subplots(4, 1, figsize=(max(10, 0.45 * len(names) + 5), 12), sharex=True)
     panels = [
         ("classifier (shipped weights)", [("clf_glass_precision", "glass precision"),
                                           ("clf_glass_recall", "glass recall"),
@@ -381,7 +388,7 @@ def summary_figure(path: Path, world_rows: list[dict]) -> Path:
         for j, (k, label) in enumerate(series):
             ax.bar(x + (j - (len(series) - 1) / 2) * wdt, [r.get(k, np.nan) for r in world_rows], wdt, label=label)
         ax.set_title(title, fontsize=10)
-        ax.legend(fontsize=8, loc="upper right")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
         ax.grid(axis="y", alpha=0.3)
     axes[-1].set_xticks(x)
     axes[-1].set_xticklabels(names, rotation=60, ha="right", fontsize=8)
@@ -441,6 +448,7 @@ _LABELS = {
     "clf_glass_precision": "classifier glass precision",
     "clf_glass_recall": "classifier glass recall",
     "clf_calibration_error": "classifier calibration error",
+    "clf_false_glass_rate": "classifier: other beams called glass",
     "map_error_true_poses": "glass-map error, true poses (robust 3x3)",
     "exp_direct_mean": "experiment sigma 5 cm: direct, mean error",
     "exp_robust3_mean": "experiment sigma 5 cm: robust 3x3, mean error",

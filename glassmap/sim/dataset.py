@@ -36,7 +36,8 @@ class SimRun:
     base pose in the map frame; ``ranges``, ``intensities`` (S, n) measurements (NaN invalid, +inf no return);
     truth per beam ``true_range``, ``material`` (MaterialKind code, -1 nothing), ``incidence`` (rad, NaN
     none), ``is_glass``, ``crossed_glass``, ``segment`` (world segment index, -1 none); multi-echo
-    ``last_echo_range``, ``last_echo_intensity`` (S, n) (NaN / 0 where a beam had one echo) or None.
+    ``last_echo_range``, ``last_echo_intensity`` (S, n) (NaN / 0 where a beam had one echo) or None;
+    ``is_ghost`` (S, n) the first echo is a mirror image (None in files written before mirror reflections).
     Odometry (O rows): ``odom_stamps`` (O,) s, ``odom_poses`` (O, 3) odom frame, ``odom_velocities`` (O, 2)
     measured (v, omega), ``wheel_speeds`` (O, 2) measured (left, right) m/s, ``odom_true_poses`` (O, 3) map.
     ``params``: the laser, robot and odometry-noise parameters used (JSON-able dict).
@@ -65,6 +66,7 @@ class SimRun:
     odom_true_poses: np.ndarray
     last_echo_range: np.ndarray | None = None
     last_echo_intensity: np.ndarray | None = None
+    is_ghost: np.ndarray | None = None
     params: dict = field(default_factory=dict)
 
     @property
@@ -127,7 +129,7 @@ class SimRun:
                                f"version {meta.get('version')!r} (expected glassmap-simrun {FORMAT_VERSION})")
         names = {f.name for f in dataclasses.fields(cls)}
         missing = sorted(n for n in names - set(data) - {"world_name", "route_name", "seed", "geometry", "params",
-                                                          "last_echo_range", "last_echo_intensity"})
+                                                          "last_echo_range", "last_echo_intensity", "is_ghost"})
         if missing:
             raise DatasetError(f"{path}: dataset is missing arrays {missing}")
         return cls(world_name=meta["world_name"], route_name=meta["route_name"], seed=int(meta["seed"]),
@@ -191,7 +193,7 @@ def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed
                                              "odom_poses", "odom_velocities", "wheel_speeds", "odom_true_poses")}
     n_max = int(max_duration * scan_rate) + 1
     big = dict(ranges=np.float32, intensities=np.float32, true_range=np.float32, material=np.int8,
-               incidence=np.float32, is_glass=bool, crossed_glass=bool, segment=np.int32)
+               incidence=np.float32, is_glass=bool, crossed_glass=bool, segment=np.int32, is_ghost=bool)
     if laser_params.multi_echo:
         big.update(last_echo_range=np.float32, last_echo_intensity=np.float32)
     blocks: dict[str, list[np.ndarray]] = {k: [] for k in big}
@@ -222,7 +224,8 @@ def simulate_run(world: World | str, route: str | np.ndarray | None = None, seed
         cols["laser_poses"].append(lp)
         cols["scan_true_poses"].append(robot.true_pose)
         row = dict(ranges=s.ranges, intensities=s.intensities, true_range=s.true_range, material=s.material,
-                   incidence=s.incidence, is_glass=s.is_glass, crossed_glass=s.crossed_glass, segment=s.segment)
+                   incidence=s.incidence, is_glass=s.is_glass, crossed_glass=s.crossed_glass, segment=s.segment,
+                   is_ghost=s.is_ghost)
         if laser_params.multi_echo:
             row.update(last_echo_range=s.echo_ranges[:, 1], last_echo_intensity=s.echo_intensities[:, 1])
         for key, val in row.items():

@@ -51,7 +51,7 @@ def test_save_load_round_trip(run: SimRun, tmp_path):
         run.world_name, run.route_name, run.seed, run.geometry)
     assert back.params == run.params
     for name in ("ranges", "intensities", "true_range", "material", "incidence", "is_glass", "crossed_glass",
-                 "segment", "odom_poses", "odom_true_poses", "laser_poses", "last_echo_range", "route"):
+                 "segment", "odom_poses", "odom_true_poses", "laser_poses", "last_echo_range", "route", "is_ghost"):
         np.testing.assert_array_equal(getattr(back, name), getattr(run, name), err_msg=name)
 
 
