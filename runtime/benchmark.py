@@ -31,15 +31,14 @@ METHODS = ("direct", "robust3", "robust5")
 @dataclass(frozen=True)
 class BenchmarkConfig:
     """What to run. generated: how many generated test worlds (world seeds 0 .. generated - 1);
-    builtin: built-in worlds added; worlds: other world files added; seeds: run seeds (robot, laser and pose-error noise) per world;
+    worlds: built-in worlds and world files added; seeds: run seeds (robot, laser and pose-error noise) per world;
     route: route name used where a world has it ("short": the generated worlds' first ~30 m), None = each
     world's default route; classifier_poses: scans of labelled beams per world and seed; trials: trials
     of the paper's experiment per world and seed, with sigma_xy (m) / sigma_theta_deg of pose error;
     demo_speed: the demo's speed-up over real time; parts: which of PARTS to run."""
 
     generated: int = 20
-    builtin: tuple[str, ...] = BUILTIN
-    worlds: tuple[str, ...] = ()
+    worlds: tuple[str, ...] = BUILTIN
     seeds: tuple[int, ...] = (0, 1, 2)
     route: str | None = None
     classifier_poses: int = 200
@@ -97,8 +96,9 @@ def prepare_worlds(cfg: BenchmarkConfig) -> list[tuple[str, str, str]]:
         gw = generate_world(s)
         path = gw.save(wdir / f"gen-{gw.kind}-{s}.toml")
         out.append((f"gen-{gw.kind}-{s}", str(path), gw.kind))
-    out.extend((name, name, "built-in") for name in cfg.builtin)
-    out.extend((Path(p).stem, p, "file") for p in cfg.worlds)
+    for w in cfg.worlds:
+        is_file = w.endswith(".toml") or "/" in w or "\\" in w
+        out.append((Path(w).stem if is_file else w, w, "file" if is_file else "built-in"))
     return out
 
 
@@ -193,7 +193,7 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
                        out_dir=str(out), record=False, progress=False, duration=cfg.demo_duration)
     res = asyncio.run(run_demo(opts))
     ev = res.evaluation
-    s = res.summary
+    s = res.summary.stages
     err = (float(np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2])))
            if res.estimated_final_pose is not None else float("nan"))
     return [dict(error=ev.error if ev else float("nan"), glass_recall=ev.glass_recall if ev else float("nan"),
@@ -493,13 +493,11 @@ def format_report(rep: BenchmarkReport) -> str:
 
 def config_from_args(args) -> BenchmarkConfig:
     base = QUICK if args.quick else BenchmarkConfig()
-    changes: dict = {}
+    changes: dict = {"worlds": tuple(w.strip() for w in args.worlds.split(",") if w.strip())}
     if args.generated is not None:
         changes["generated"] = args.generated
-    if args.builtin is not None:
-        changes["builtin"] = tuple(w for w in args.builtin.split(",") if w)
-    if args.seeds is not None:
-        changes["seeds"] = tuple(int(s) for s in args.seeds.split(",") if s)
+    if not (args.quick and list(args.seeds) == list(SEEDS_DEFAULT)):
+        changes["seeds"] = tuple(args.seeds)
     if args.route is not None:
         changes["route"] = None if args.route == "default" else args.route
     if args.trials is not None:
@@ -512,30 +510,34 @@ def config_from_args(args) -> BenchmarkConfig:
         changes["classifier_poses"] = args.classifier_poses
     if args.out is not None:
         changes["out_dir"] = args.out
-    if args.world:
-        changes["worlds"] = tuple(args.world)
     return replace(base, **changes)
 
 
+SEEDS_DEFAULT = (0, 1, 2)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--quick", action="store_true", help="4 generated + the 4 built-in worlds, one seed, short "
+    from glassmap.cli_args import add_no_progress, add_out, add_seeds, add_workers, add_worlds
+
+    p.add_argument("--quick", action="store_true", help="4 generated + the 4 built-in worlds, seed 0, short "
                    "routes, 2 trials (within 10 minutes on 2 cores)")
-    p.add_argument("--world", action="append", default=None, metavar="FILE", help="also run on this world file "
-                   "(repeatable)")
-    p.add_argument("--generated", type=int, default=None, help="generated test worlds (seeds 0..N-1; default 20)")
-    p.add_argument("--builtin", default=None, help="comma-separated built-in worlds ('' = none; default all four)")
-    p.add_argument("--seeds", default=None, help="comma-separated run seeds (default 0,1,2; quick: 0)")
+    p.add_argument("--generated", type=int, default=None, help="generated test worlds: world seeds 0..N-1 "
+                   "(default 20, --quick 4)")
+    add_worlds(p, ",".join(BUILTIN))
+    add_seeds(p, "0-2")
     p.add_argument("--route", default=None, help="route used where a world has it, e.g. short; 'default' = each "
-                   "world's default route (default: the default route; quick: short)")
-    p.add_argument("--trials", type=int, default=None, help="paper-experiment trials per world and seed (default 5)")
+                   "world's default route (default: the default route; --quick: short)")
+    p.add_argument("--trials", type=int, default=None, help="paper-experiment trials per world and seed (default 5, "
+                   "--quick 2)")
     p.add_argument("--parts", default=None, help=f"comma-separated parts (default all: {','.join(PARTS)})")
     p.add_argument("--demo-speed", type=float, default=None, help="demo speed-up over real time (default 2)")
-    p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed")
-    p.add_argument("--out", default=None, help="output directory (default out/eval, quick: out/eval-quick)")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: one per core)")
-    p.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address; "
-                   "needs pip install 'glassmap[dask]')")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed "
+                   "(default 200, --quick 60)")
+    add_out(p, None, "output directory; None = out/eval (--quick: out/eval-quick)")
+    add_workers(p)
+    p.add_argument("--dask", metavar="ADDRESS", default=None, help="run on a Dask cluster (scheduler address, e.g. "
+                   "tcp://10.0.0.2:8786; needs pip install 'glassmap[dask]')")
+    add_no_progress(p)
 
 
 def cmd(args) -> int:
@@ -546,6 +548,6 @@ def cmd(args) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    rep = run_benchmark(cfg, workers=args.workers, dask_address=args.dask, progress=not args.no_progress)
+    rep = run_benchmark(cfg, workers=args.workers or None, dask_address=args.dask, progress=not args.no_progress)
     print(format_report(rep))
     return 1 if rep.failures else 0

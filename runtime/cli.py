@@ -1,5 +1,5 @@
 """The ``glassmap`` command: the root parser and the runtime's own commands (``run``, ``demo``, ``replay``,
-``bench``, ``recover``).
+``bench``, ``recover``, ``eval``).
 
 The root lives in the runtime, the top layer, because it gathers every part's commands: groups by what they
 act on (``sim``, ``glass``, ``pose``, ``hokuyo``, ``pioneer``), each with its own ``register(subparsers)``.
@@ -153,7 +153,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
     e = sub.add_parser(
-        "benchmark", help="generalisation benchmark: the pipeline on generated test worlds + the built-in ones",
+        "eval", help="generalisation benchmark: the pipeline on generated test worlds + the built-in ones",
         description="Run the classifier, the glass map with true poses, the paper's experiment (direct vs robust "
         "3x3 / 5x5 under pose error), the pose estimator and the runtime demo on generated test worlds (seeds "
         "0-99, never used for training or tuning) and the built-in worlds; report per world and aggregated "

@@ -34,7 +34,7 @@ material = "wall"
 def test_benchmark_on_a_tiny_world_end_to_end(tmp_path):
     world = tmp_path / "tiny.toml"
     world.write_text(TINY)
-    cfg = BenchmarkConfig(generated=0, builtin=(), worlds=(str(world),), seeds=(0,), classifier_poses=5, trials=1,
+    cfg = BenchmarkConfig(generated=0, worlds=(str(world),), seeds=(0,), classifier_poses=5, trials=1,
                           demo_speed=4.0, out_dir=str(tmp_path / "out"))
     rep = run_benchmark(cfg, workers=1, progress=False, figure=False)
     assert rep.failures == []

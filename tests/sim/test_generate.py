@@ -91,7 +91,7 @@ def test_seed_ranges_are_disjoint_and_guarded():
 
 
 def test_cli_writes_the_world(tmp_path):
-    from glassmap.cli import main
+    from runtime.cli import main
 
     out = tmp_path / "w.toml"
     assert main(["sim", "generate", "--seed", "2", "--out", str(out)]) == 0
