@@ -311,8 +311,15 @@ def cast_mirrored(opt: _Optics, pose: np.ndarray, geometry: LaserGeometry, beams
     k1 = np.ceil((rel + width) / inc)
     k0b = np.floor((rel - two_pi) / inc)
     k1b = np.ceil((rel + width - two_pi) / inc)
+    # the reflected ray stays on the laser's side of the mirror: segments wholly behind it are never hit
+    sa = (opt.a[None, :, 0] - opt.a[mirrors, 0][:, None]) * -uy[:, None] + (
+        opt.a[None, :, 1] - opt.a[mirrors, 1][:, None]) * ux[:, None]
+    sb = sa + opt.e[None, :, 0] * -uy[:, None] + opt.e[None, :, 1] * ux[:, None]
+    side = np.sign(dist)[:, None]
+    front = np.maximum(sa * side, sb * side) > 1e-9
     lo = np.maximum(np.concatenate([k0, k0b], axis=1), bmin[:, None])
-    hi = np.minimum(np.concatenate([k1, k1b], axis=1), bmax[:, None])
+    hi = np.where(np.concatenate([front, front], axis=1), np.minimum(np.concatenate([k1, k1b], axis=1), bmax[:, None]),
+                  -1)
     lo = lo.astype(np.int64).ravel()
     hi = hi.astype(np.int64).ravel()
     m = len(opt.a)
