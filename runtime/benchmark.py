@@ -35,7 +35,8 @@ class BenchmarkConfig:
     route: route name used where a world has it ("short": the generated worlds' first ~30 m), None = each
     world's default route; classifier_poses: scans of labelled beams per world and seed; trials: trials
     of the paper's experiment per world and seed, with sigma_xy (m) / sigma_theta_deg of pose error;
-    demo_speed: the demo's speed-up over real time; parts: which of PARTS to run."""
+    demo_speed: the demo's speed-up over real time; demo_duration: emulated seconds after which the demo
+    stops even if the route is not done (None: when it is done); parts: which of PARTS to run."""
 
     generated: int = 20
     worlds: tuple[str, ...] = BUILTIN
@@ -61,7 +62,7 @@ class BenchmarkConfig:
 
 
 QUICK = BenchmarkConfig(generated=4, seeds=(0,), route="short", classifier_poses=60, trials=2, demo_speed=2.0,
-                        out_dir="out/eval-quick")
+                        demo_duration=90.0, out_dir="out/eval-quick")
 
 
 @dataclass(frozen=True)
@@ -440,6 +441,8 @@ def run_benchmark(cfg: BenchmarkConfig, *, workers: int | None = None, dask_addr
            "failures": failures}
     (out / "summary.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     files["summary"] = str(out / "summary.json")
+    (out / "summary.md").write_text(summary_markdown(doc))
+    files["markdown"] = str(out / "summary.md")
     return BenchmarkReport(cfg, wrows, summ, failures, seconds, files)
 
 
@@ -462,6 +465,34 @@ _LABELS = {
     "demo_error": "demo per-cell error",
     "demo_glass_recall": "demo glass recall",
 }
+
+
+_WORLD_COLUMNS = [("clf_glass_precision", "clf prec."), ("clf_glass_recall", "clf recall"),
+                  ("clf_calibration_error", "clf ECE"), ("map_error_true_poses", "map err. true poses"),
+                  ("exp_direct_mean", "direct"), ("exp_robust3_mean", "robust 3x3"), ("exp_robust5_mean", "robust 5x5"),
+                  ("pose_ate_rmse", "ATE (m)"), ("pose_nees_mean", "NEES"), ("pose_inside_95", "in 95 %"),
+                  ("demo_error", "demo err."), ("demo_glass_recall", "demo glass recall")]
+
+
+def summary_markdown(doc: dict) -> str:
+    """Markdown tables of a summary.json document: mean and worst world per group, then every world."""
+    def f(v) -> str:
+        return "-" if v is None or not np.isfinite(v) else f"{v:.3f}"
+
+    groups = [g for g in ("generated", "built-in", "files") if g in doc["summary"]]
+    lines = ["| metric | " + " | ".join(f"{g}: mean | {g}: worst (world)" for g in groups) + " |",
+             "|---|" + "---|---|" * len(groups)]
+    for k, label in _LABELS.items():
+        cells = []
+        for g in groups:
+            d = doc["summary"][g].get(k)
+            cells += ["-", "-"] if d is None else [f(d["mean"]), f"{f(d['worst'])} ({d['worst_world']})"]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += ["", "| world | kind | " + " | ".join(h for _, h in _WORLD_COLUMNS) + " |",
+              "|---|---|" + "---|" * len(_WORLD_COLUMNS)]
+    for r in doc["worlds"]:
+        lines.append(f"| {r['world']} | {r['kind']} | " + " | ".join(f(r.get(k)) for k, _ in _WORLD_COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def format_report(rep: BenchmarkReport) -> str:

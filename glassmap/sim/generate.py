@@ -142,12 +142,6 @@ def _route_polygon(kind: str, rng: np.random.Generator) -> np.ndarray:
     return poly
 
 
-def _clearance(points: np.ndarray, segs: list[tuple[np.ndarray, np.ndarray]]) -> float:
-    from glassmap.sim.world import polyline_clearance
-
-    return polyline_clearance(points, np.array([[a, b] for a, b in segs]).reshape(-1, 2, 2))
-
-
 # ---------------------------------------------------------------------------------------------------------
 # the builder
 
@@ -259,7 +253,7 @@ def _wall_edge(b: _Builder, a: np.ndarray, c: np.ndarray, inward: np.ndarray, ki
         b.segment(a + u * pos, c, "wall")
 
 
-def _place_clutter(b: _Builder, route: np.ndarray, segs: list, n: int, hw: float, pillars: bool) -> None:
+def _place_clutter(b: _Builder, route: np.ndarray, n: int, hw: float, pillars: bool) -> None:
     """Pillars and furniture in the hall / corridor, only where they keep the route's clearance."""
     rng = b.rng
     legs = np.diff(np.vstack([route, route[:1]]), axis=0)
@@ -279,7 +273,6 @@ def _place_clutter(b: _Builder, route: np.ndarray, segs: list, n: int, hw: float
             if _point_route_distance(c, route) < r + MIN_CLEARANCE + 0.2:
                 continue
             b.circle(c, r, int(rng.integers(8, 17)), str(rng.choice(["wall", "metal", "object"])))
-            segs.append((c - r, c + r))
             continue
         w, d = rng.uniform(0.5, 2.0), rng.uniform(0.4, 0.9)
         off = hw - d / 2 - rng.uniform(0.02, 0.2)
@@ -355,9 +348,8 @@ def _generate(seed: int, kind: str, rng: np.random.Generator) -> GeneratedWorld:
                     b.circle(p, rng.uniform(0.3, 0.8), 12, str(rng.choice(["object", "dark"])))
                 else:
                     b.box(p, (rng.uniform(0.6, 2.0), rng.uniform(0.5, 1.0)), rng.uniform(0, math.pi), "object")
-    segs: list = []
     n_clutter = {"office": 4, "corridor": 3, "lobby": 14, "atrium": 10}[kind]
-    _place_clutter(b, route, segs, n_clutter, hw, pillars=kind in ("lobby", "atrium"))
+    _place_clutter(b, route, n_clutter, hw, pillars=kind in ("lobby", "atrium"))
 
     # routes: the loop and a short one (the first legs up to about 30 m)
     loop = np.vstack([route, route[:1]])

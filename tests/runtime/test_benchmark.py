@@ -35,7 +35,7 @@ def test_benchmark_on_a_tiny_world_end_to_end(tmp_path):
     world = tmp_path / "tiny.toml"
     world.write_text(TINY)
     cfg = BenchmarkConfig(generated=0, worlds=(str(world),), seeds=(0,), classifier_poses=5, trials=1,
-                          demo_speed=4.0, out_dir=str(tmp_path / "out"))
+                          demo_speed=2.0, demo_duration=10.0, out_dir=str(tmp_path / "out"))
     rep = run_benchmark(cfg, workers=1, progress=False, figure=False)
     assert rep.failures == []
     (row,) = rep.worlds
@@ -44,6 +44,7 @@ def test_benchmark_on_a_tiny_world_end_to_end(tmp_path):
     for k in ("clf_glass_recall", "map_error_true_poses", "exp_robust3_mean", "pose_ate_rmse", "demo_error"):
         assert 0.0 <= row[k] < 10.0, k
     doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert "| tiny | file |" in (tmp_path / "out" / "summary.md").read_text()
     assert doc["worlds"][0]["world"] == "tiny" and "files" in doc["summary"]
     assert doc["summary"]["files"]["pose_ate_rmse"]["worst_world"] == "tiny"
     with open(tmp_path / "out" / "per_run.csv") as f:
