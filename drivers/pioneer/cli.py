@@ -25,7 +25,7 @@ URL_HELP = ("robot URL: serial:///dev/ttyUSB0 (9600 baud at power-up; ?baud=N to
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("pioneer", help="Pioneer 3-DX base: probe, drive, emulate, bench",
+    p = subparsers.add_parser("pioneer", help="Pioneer 3-DX base: probe, drive, emulate, eval (odometry covariance), bench",
                               description="Talk to a Pioneer 3-DX base (ARCOS/P2OS protocol) or emulate one.")
     sub = p.add_subparsers(dest="pioneer_command", required=True, metavar="ACTION")
 
