@@ -53,6 +53,11 @@ class MappingProcessor:
         self.latest_odom: Odometry | None = None
         self.scans = 0
 
+    @property
+    def wants_echoes(self) -> bool:
+        """The glass classifier reads multi-echo scans (the laser should stream NE)."""
+        return bool(getattr(self.mapper.classifier, "uses_echoes", False))
+
     def warm_up(self) -> None:
         """Run the glass classification once on a synthetic scan (a room of 4 x 6 m), without touching the
         maps or the pose: the first torch call and the first pass through the numpy code cost tens of
