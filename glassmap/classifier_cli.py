@@ -112,7 +112,7 @@ def cmd_train(args) -> int:
         print(f"   wrote {', '.join(rep['files'])} in {rep['seconds']:.0f} s")
         results[model] = rep
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "train_report.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    (out_dir / "train_report.json").write_text(json.dumps(_strict(results), indent=2) + "\n")
     if not args.replace_shipped:
         print("the shipped weights are unchanged (use --replace-shipped to replace them)")
     return 0
@@ -126,6 +126,21 @@ def _load_labels(path: str, recording: int):
     beams = lab.beams()
     beams.group = lab.scan_index.astype("int64")
     return beams
+
+
+def _strict(obj):
+    """``obj`` with NaN / inf floats as null and numpy scalars as Python numbers (strict JSON)."""
+    import math
+
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(v) for v in obj]
+    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def _split_recording(beams, share: float = 0.2):
@@ -189,7 +204,7 @@ def load_classifiers(spec: str) -> dict:
 
     out = {}
     for item in (s for s in spec.split(",") if s):
-        out[item if item in MODELS else Path(item).name] = (GlassClassifier.load_default(item) if item in MODELS
+        out[item] = (GlassClassifier.load_default(item) if item in MODELS
                                                             else GlassClassifier.load(item))
     return out
 
@@ -216,7 +231,7 @@ def cmd_eval(args) -> int:
         result = evaluate_worlds(classifiers, cfg, progress=not args.no_progress)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eval.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    (out / "eval.json").write_text(json.dumps(_strict(result), indent=2) + "\n")
     print(format_table(result))
     print(f"wrote {out / 'eval.json'}")
     return 0

@@ -137,19 +137,23 @@ def evaluate_beams(classifiers: dict, beams, label: str = "beams") -> dict:
 
 
 def format_table(result: dict) -> str:
-    """Text table: one line per model with mean and worst world."""
+    """Text table: one line per model (mean and worst world, or the figures on labelled beams)."""
+    rows = list(result["models"].items())
+    if rows and "balanced_accuracy_mean" not in rows[0][1]["summary"]:
+        lines = [f"{'model':14s} {'bal.acc':>8s} {'precision':>9s} {'recall':>7s} {'ECE(bal)':>8s} {'ECE':>7s}  data"]
+        for name, m in rows:
+            s = m["summary"]
+            lines.append(f"{name:14s} {s['balanced_accuracy']:8.4f} {s['precision']:9.4f} {s['recall']:7.4f} "
+                         f"{s['ece_balanced']:8.4f} {s['ece']:7.4f}  {s.get('data', '')} ({s['n']} beams, "
+                         f"{s['n_glass']} glass)")
+        return "\n".join(lines)
     lines = [f"{'model':10s} {'bal.acc mean/worst':>19s} {'precision mean/worst':>21s} {'recall mean/worst':>18s} "
              f"{'ECE(bal) mean/worst':>20s} {'ECE mean':>9s}  worst world"]
-    for name, m in result["models"].items():
+    for name, m in rows:
         s = m["summary"]
-        if "balanced_accuracy_mean" in s:
-            lines.append(f"{name:10s} {s['balanced_accuracy_mean']:9.4f}/{s['balanced_accuracy_worst']:.4f} "
-                         f"{s['precision_mean']:11.4f}/{s['precision_worst']:.4f} "
-                         f"{s['recall_mean']:8.4f}/{s['recall_worst']:.4f} "
-                         f"{s['ece_balanced_mean']:10.4f}/{s['ece_balanced_worst']:.4f} {s['ece_mean']:9.4f}  "
-                         f"{s['worst_world']}")
-        else:
-            lines.append(f"{name:10s} {s['balanced_accuracy']:19.4f} {s['precision']:21.4f} {s['recall']:18.4f} "
-                         f"{s['ece_balanced']:20.4f} {s['ece']:9.4f}  ({s.get('data', '')}, {s['n']} beams, "
-                         f"{s['n_glass']} glass)")
+        lines.append(f"{name:10s} {s['balanced_accuracy_mean']:9.4f}/{s['balanced_accuracy_worst']:.4f} "
+                     f"{s['precision_mean']:11.4f}/{s['precision_worst']:.4f} "
+                     f"{s['recall_mean']:8.4f}/{s['recall_worst']:.4f} "
+                     f"{s['ece_balanced_mean']:10.4f}/{s['ece_balanced_worst']:.4f} {s['ece_mean']:9.4f}  "
+                     f"{s.get('worst_world', '')}")
     return "\n".join(lines)
