@@ -30,16 +30,34 @@ MODELS = tuple(FEATURES)
 
 
 _PAD = 10  # beams of padding on each side of the scan (the widest neighbourhood)
-_NB = np.array([-2, -1, 1, 2]) + _PAD
 
 
-def _windows(a: np.ndarray, fill: float) -> np.ndarray:
-    """(n, 2 * _PAD + 1) view: row i holds a[i - _PAD .. i + _PAD] (``fill`` outside the scan)."""
-    n = a.shape[0]
-    pad = np.full(n + 2 * _PAD, fill)
-    pad[_PAD:_PAD + n] = a
-    s = pad.strides[0]
-    return np.lib.stride_tricks.as_strided(pad, (n, 2 * _PAD + 1), (s, s), writeable=False)
+def _padded(a: np.ndarray, fill: float) -> np.ndarray:
+    """``a`` with _PAD values ``fill`` on each side: element i of the scan is at i + _PAD."""
+    out = np.full(a.shape[0] + 2 * _PAD, fill)
+    out[_PAD:_PAD + a.shape[0]] = a
+    return out
+
+
+def _window7(n: int) -> np.ndarray:
+    """Beams in [i - 3, i + 3] inside a scan of n beams."""
+    i = np.arange(n)
+    return (np.minimum(i + 4, n) - np.maximum(i - 3, 0)).astype(np.float64)
+
+
+_WINDOW7 = {1081: _window7(1081)}
+
+
+def _running_max(pad: np.ndarray, w: int, n: int) -> np.ndarray:
+    """max(a[i - w .. i + w]) for i < n from ``_padded(a, -inf)`` (w <= _PAD), by doubling windows."""
+    m, width = pad, 1
+    while 2 * width <= 2 * w + 1:
+        m = np.maximum(m[:-width], m[width:])  # m[j] = max(pad[j .. j + 2 width - 1])
+        width *= 2
+    rest = 2 * w + 1 - width
+    if rest:
+        m = np.maximum(m[:-rest], m[rest:])
+    return m[_PAD - w:_PAD - w + n]
 
 
 def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, intensities: np.ndarray,
@@ -77,7 +95,7 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
         col = e.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
         rows = np.arange(n)
         gap = e[rows, col] - r
-        x[:, 4] = np.where(two, np.clip(gap, -5.0, 10.0), 0.0)
+        x[:, 4] = np.where(two, np.minimum(np.maximum(gap, -5.0), 10.0), 0.0)
         if echo_intensities is not None:
             ei = np.asarray(echo_intensities, dtype=np.float64).reshape(n, -1)[rows, col]
             x[:, 5] = np.where(two & (ei > 0.0), np.log1p(np.where(ei > 0.0, ei, 0.0)), 0.0)
@@ -89,12 +107,13 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
     x[:, 3] = 1.0 + two
 
     # neighbours along the scan (beams without a reading count as the centre's value)
-    wl = _windows(np.where(ok_r, li, np.nan), np.nan)
-    d = wl[:, _NB] - li[:, None]
-    x[:, 6:10] = np.where(d == d, d, 0.0)
-    wm = _windows(np.where(ok_r, li, -np.inf), -np.inf)
-    x[:, 10] = np.maximum(wm[:, _PAD - 3:_PAD + 4].max(axis=1), li) - li
-    x[:, 11] = np.maximum(wm.max(axis=1), li) - li
+    lv = _padded(np.where(ok_r, li, np.nan), np.nan)
+    for j, k in enumerate((-2, -1, 1, 2)):
+        d = lv[_PAD + k:_PAD + k + n] - li
+        x[:, 6 + j] = np.where(d == d, d, 0.0)
+    lm = _padded(np.where(ok_r, li, -np.inf), -np.inf)
+    x[:, 10] = np.maximum(_running_max(lm, 3, n), li) - li
+    x[:, 11] = np.maximum(_running_max(lm, 10, n), li) - li
     rv = np.where(ok_r, r, np.nan)
     rp = np.empty(n)
     rm = np.empty(n)
@@ -102,10 +121,11 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
     rm[1:], rm[0] = rv[:-1], rv[0]
     slope = np.abs(rp - rm) * 0.5
     x[:, 12] = np.where(slope <= 1.0, slope, 1.0)  # NaN (a neighbour without a range) -> 1
-    c = np.concatenate([[0.0], np.cumsum(two)])
-    lo = np.clip(np.arange(n) - 3, 0, n)
-    hi = np.clip(np.arange(n) + 4, 0, n)
-    x[:, 13] = (c[hi] - c[lo]) / (hi - lo)
+    tp = np.zeros(n + 7)
+    tp[3:n + 3] = two
+    c = np.cumsum(tp)  # c[j] = sum of tp[0 .. j]
+    w7 = _WINDOW7.get(n)
+    x[:, 13] = (c[6:n + 6] - np.concatenate(([0.0], c[:n - 1]))) / (w7 if w7 is not None else _window7(n))
 
     # place on the line segment (groups of beams by segment id, via one sort)
     seg = inc.segment
@@ -115,8 +135,13 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
     if on.size:
         order = on[np.argsort(seg[on], kind="stable")]  # beams grouped by segment, in beam order
         s_sorted = seg[order]
-        starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
-        ends = np.r_[starts[1:], order.size]
+        brk = np.empty(order.size, dtype=bool)
+        brk[0] = True
+        np.not_equal(s_sorted[1:], s_sorted[:-1], out=brk[1:])
+        starts = np.flatnonzero(brk)
+        ends = np.empty_like(starts)
+        ends[:-1] = starts[1:]
+        ends[-1] = order.size
         cnt = (ends - starts).astype(np.float64)
         grp = np.repeat(np.arange(starts.size), ends - starts)
         idx = order.astype(np.float64)
