@@ -68,7 +68,9 @@ class MappingProcessor:
         a = geo.angles
         with np.errstate(divide="ignore"):
             r = np.minimum(np.abs(2.0 / np.sin(a)), np.abs(3.0 / np.cos(a)))
-        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo))
+        echoes = np.full((a.shape[0], 1), np.nan) if self.wants_echoes else None  # as the laser will send
+        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo,
+                                  echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))
 
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:
         c0 = time.thread_time()
