@@ -1,13 +1,15 @@
-"""Per-beam glass classifier (docs/method.md section 2): f(intensity, distance, incidence) -> p(glass).
+"""Per-beam glass classifiers (docs/method.md section 2): features of a beam -> p(glass).
 
-A torch MLP with 4 fully connected layers and a softmax over {not glass, glass} (class 1 = glass).
-Inputs are normalised: features (log1p(intensity), distance in metres, incidence in radians) are
-standardised with the training set's mean and standard deviation. A temperature (fitted on held-out data)
-divides the logits before the softmax so that outputs behave as probabilities for the Bayesian update.
+A torch MLP with 4 fully connected layers and a softmax over {not glass, glass} (class 1 = glass). Two
+named models differ only in their inputs (``glassmap.glass_features``): ``baseline`` is the paper's
+f(intensity, distance, incidence); ``context`` adds the beam's echoes, its neighbours along the scan and
+its place on its line segment. Inputs are standardised with the training set's mean and standard
+deviation. A temperature (fitted on validation worlds) divides the logits before the softmax so that
+outputs behave as probabilities for the Bayesian update.
 
-The trained weights ship in ``glassmap/models/glass_mlp.pt`` (state dict) with ``glass_mlp.json``
-(normalisation, temperature, architecture and the training report); :meth:`GlassClassifier.load_default`
-loads them from the package, without network.
+The trained weights ship in ``glassmap/models/glass_<model>.pt`` (state dict) with ``glass_<model>.json``
+(model name, normalisation, temperature, architecture and the training report);
+:meth:`GlassClassifier.load_default` loads them from the package, without network.
 """
 
 from __future__ import annotations
@@ -22,7 +24,17 @@ import numpy as np
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 _THREADS_SET = threading.local()  # per thread: torch already set to one intra-op thread
-DEFAULT_STEM = "glass_mlp"
+DEFAULT_MODEL = "context"
+FALLBACK_MODEL = "baseline"
+
+
+def shipped_stem(model: str = DEFAULT_MODEL) -> Path:
+    """Path stem of the weights shipped for a named model (``baseline`` or ``context``)."""
+    from .glass_features import MODELS
+
+    if model not in MODELS:
+        raise ClassifierError(f"unknown classifier model {model!r}; shipped models: {', '.join(MODELS)}")
+    return MODEL_DIR / f"glass_{model}"
 
 
 class ClassifierError(RuntimeError):
@@ -51,7 +63,8 @@ class ClassifierMeta:
     mean: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     std: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
     temperature: float = 1.0
-    feature_names: tuple[str, str, str] = ("log1p(intensity)", "distance_m", "incidence_rad")
+    feature_names: tuple[str, ...] = ("log1p(intensity)", "distance_m", "incidence_rad")
+    model: str = "baseline"
     report: dict = field(default_factory=dict)
 
     def to_json(self) -> str:
@@ -62,16 +75,17 @@ class ClassifierMeta:
         d = json.loads(text)
         return cls(hidden=tuple(d["hidden"]), mean=list(d["mean"]), std=list(d["std"]),
                    temperature=float(d.get("temperature", 1.0)),
-                   feature_names=tuple(d.get("feature_names", cls.feature_names)), report=d.get("report", {}))
+                   feature_names=tuple(d.get("feature_names", cls.feature_names)),
+                   model=str(d.get("model", "baseline")), report=d.get("report", {}))
 
 
-def build_mlp(hidden: tuple[int, int, int] = (32, 32, 16)):
-    """The network: 4 linear layers (3 -> h1 -> h2 -> h3 -> 2) with ReLU; outputs logits over
+def build_mlp(hidden: tuple[int, int, int] = (32, 32, 16), n_in: int = 3):
+    """The network: 4 linear layers (n_in -> h1 -> h2 -> h3 -> 2) with ReLU; outputs logits over
     {not glass, glass}."""
     import torch.nn as nn
 
     h1, h2, h3 = hidden
-    return nn.Sequential(nn.Linear(3, h1), nn.ReLU(), nn.Linear(h1, h2), nn.ReLU(), nn.Linear(h2, h3), nn.ReLU(),
+    return nn.Sequential(nn.Linear(n_in, h1), nn.ReLU(), nn.Linear(h1, h2), nn.ReLU(), nn.Linear(h2, h3), nn.ReLU(),
                          nn.Linear(h3, 2))
 
 
@@ -104,7 +118,12 @@ class GlassClassifier:
             if not p.is_file():
                 raise ClassifierError(f"classifier file {p} not found; run `glassmap glass train` to create it")
         meta = ClassifierMeta.from_json(js.read_text())
-        model = build_mlp(meta.hidden)
+        from .glass_features import FEATURES
+
+        if tuple(FEATURES.get(meta.model, ())) != tuple(meta.feature_names):
+            raise ClassifierError(f"{js}: model {meta.model!r} with features {list(meta.feature_names)} is not "
+                                  f"a known model of this version (models: {', '.join(FEATURES)})")
+        model = build_mlp(meta.hidden, len(meta.feature_names))
         try:
             model.load_state_dict(torch.load(pt, map_location="cpu", weights_only=True))
         except (RuntimeError, KeyError) as e:
@@ -112,10 +131,20 @@ class GlassClassifier:
         return cls(model, meta)
 
     @classmethod
-    def load_default(cls) -> "GlassClassifier":
-        """The weights shipped inside the package (glassmap/models/glass_mlp.pt)."""
-        ref = resources.files("glassmap") / "models" / DEFAULT_STEM
+    def load_default(cls, model: str = DEFAULT_MODEL) -> "GlassClassifier":
+        """The weights shipped inside the package for ``model`` (glassmap/models/glass_<model>.pt)."""
+        shipped_stem(model)  # validates the name
+        ref = resources.files("glassmap") / "models" / f"glass_{model}"
         return cls.load(Path(str(ref)))
+
+    @property
+    def model_name(self) -> str:
+        return self.meta.model
+
+    @property
+    def uses_echoes(self) -> bool:
+        """The model reads the beams' further echoes (multi-echo scans)."""
+        return "echo_count" in self.meta.feature_names
 
     def _one_thread_here(self) -> None:
         """Run torch on one intra-op thread in the calling thread. ``torch.set_num_threads`` reaches only the
@@ -137,11 +166,16 @@ class GlassClassifier:
         return out.numpy() * self._inv_t
 
     def predict(self, intensity: np.ndarray, distance: np.ndarray, incidence: np.ndarray) -> np.ndarray:
-        """p(glass) (n,) float64 for beams with intensity (sensor units), distance (m), incidence (rad).
-
-        Inputs must be finite; the caller selects the beams that have an incidence angle.
+        """p(glass) (n,) float64 of the baseline model for beams with intensity (sensor units), distance (m),
+        incidence (rad). Inputs must be finite; the caller selects the beams that have an incidence angle.
         """
-        x = features(intensity, distance, incidence)
+        if self.meta.model != "baseline":
+            raise ClassifierError(f"predict(intensity, distance, incidence) needs the baseline model; this is "
+                                  f"{self.meta.model!r}: use predict_scan or predict_features")
+        return self.predict_features(features(intensity, distance, incidence))
+
+    def predict_features(self, x: np.ndarray) -> np.ndarray:
+        """p(glass) (m,) float64 for raw feature rows ``x`` (m, k) of this model (glassmap.glass_features)."""
         if x.shape[0] == 0:
             return np.zeros(0)
         if not np.isfinite(x).all():
@@ -149,3 +183,17 @@ class GlassClassifier:
         lg = self.logits(x).astype(np.float64)
         # softmax over 2 classes: p(glass) = sigmoid(l1 - l0)
         return 1.0 / (1.0 + np.exp(-(lg[:, 1] - lg[:, 0])))
+
+    def predict_beams(self, x: np.ndarray) -> np.ndarray:
+        """p(glass) for rows of the context model's features (the baseline reads their first columns)."""
+        return self.predict_features(np.ascontiguousarray(x[:, :len(self.meta.feature_names)]))
+
+    def predict_scan(self, scan, inc, use: np.ndarray) -> np.ndarray:
+        """p(glass) (m,) for the beams ``use`` (n,) bool of ``scan`` (glassmap.types.Scan), given the
+        incidence result ``inc`` of its ranges. A model that reads echoes sees a single-echo scan as one
+        whose beams all had one echo (the runtime falls back to the baseline model instead)."""
+        from .glass_features import scan_features
+
+        x = scan_features(self.meta.model, scan.angles, scan.ranges, scan.intensities, inc, scan.echoes,
+                          scan.echo_intensities)
+        return self.predict_features(x[use])

@@ -8,6 +8,7 @@ and the registration sigma (metres), and updates the maps. All steps are vectori
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -20,6 +21,8 @@ from .glass import GlassMap, GlassParams
 from .grid import OccupancyGrid
 from .registration import Aggregation, DecayRef, Method, aggregate, nearest_occupied_cells, registration_observations
 from .types import Scan
+
+log = logging.getLogger(__name__)
 
 MAX_ABS_COORD = 1.0e4
 """Largest |x| or |y| (m) of a laser pose the mapper accepts; beyond it the grid would grow absurdly."""
@@ -38,7 +41,8 @@ class MapperConfig:
     window: k (3 or 5). decay_ref: eq. 6 distance from c_hat_j ("cell", default) or from the end point.
     aggregation: "scan" (mean log-odds per cell per scan, default) or "beam" (every beam, the paper).
     search_radius: cells around the end-point cell searched for the nearest occupied cell c_hat_j.
-    weights: classifier weights stem (path without suffix); None = the weights shipped in the package.
+    weights: classifier weights stem (path without suffix); None = the shipped default model (``context``).
+        A model that reads echoes given a single-echo scan uses the shipped ``baseline`` model instead.
     protect: which cells free-space updates must not clear when this mapper updates the occupancy grid
         (beams pass through glass at oblique incidence, which is no evidence that the cell is free):
         "hits" (default) = cells where a beam classified as glass ended (layer ``<layer>_hits``),
@@ -119,6 +123,7 @@ class GlassMapper:
             classifier = (GlassClassifier.load(config.weights) if config.weights
                           else GlassClassifier.load_default())
         self.classifier = classifier
+        self._fallback = None  # the baseline model, loaded at the first single-echo scan if needed
         self.scans = 0
         self.skipped_scans = 0
         self._occ_thr = float(math.log(self.occupancy.params.occ_threshold / (1 - self.occupancy.params.occ_threshold)))
@@ -150,9 +155,23 @@ class GlassMapper:
         out.n_bad += int((~finite_i & ~np.isnan(r)).sum())
         use = has_angle & finite_i
         if use.any():
-            out.p_glass[use] = self.classifier.predict(inten[use], r[use], res.incidence[use])
+            out.p_glass[use] = self.classifier_for(scan).predict_scan(scan, res, use)
         out.n_classified = int(use.sum())
         return out, use
+
+    def classifier_for(self, scan: Scan):
+        """The classifier for this scan: the configured one, or the shipped baseline when the configured one
+        reads echoes and the scan has none (said once in the log)."""
+        clf = self.classifier
+        if scan.echoes is not None or not getattr(clf, "uses_echoes", False):
+            return clf
+        if self._fallback is None:
+            from .classifier import FALLBACK_MODEL, GlassClassifier
+
+            self._fallback = GlassClassifier.load_default(FALLBACK_MODEL)
+            log.warning("single-echo scans: the %r glass classifier needs multi-echo scans, using the %r model "
+                        "(f(intensity, distance, incidence)) instead", clf.model_name, FALLBACK_MODEL)
+        return self._fallback
 
     def register(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray,
                  sigma: np.ndarray) -> int:

@@ -251,7 +251,8 @@ class Runtime:
         taps = [self._rx_tap("laser")]
         if self.sink is not None:
             taps.append(self.sink.tap("laser", laser_url))
-        opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, **self.hokuyo_options}
+        multi = {"on": True, "off": False}.get(cfg.laser.multi_echo, self.processor.wants_echoes)
+        opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, "multi_echo": multi, **self.hokuyo_options}
         self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)
         log.info("laser connected: %s", laser_url)
         base_url = cfg.resolved_base_url()

@@ -136,7 +136,7 @@ def _classifier(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     poses = sample_poses(world, cfg.classifier_poses, rng)
     beams = simulate_beams(world, poses, world_laser_params(world), rng)
     clf = GlassClassifier.load_default()
-    p = clf.predict(np.expm1(beams.x[:, 0]), beams.x[:, 1], beams.x[:, 2])
+    p = clf.predict_beams(beams.x)
     rep = binary_report(beams.y, p)
     n_other = max(rep.n - rep.n_glass, 1)
     false_glass = float(((p > 0.5) & ~beams.y).sum() / n_other)

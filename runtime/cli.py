@@ -42,9 +42,25 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     register(sub)
     for group in GROUPS:
-        group.register(sub)
+        group_sub = group.register(sub)
+        if group is glassmap.glass_cli:
+            _register_glass_label(group_sub)
     tidy_help(parser)
     return parser
+
+
+def _register_glass_label(glass_sub: argparse._SubParsersAction) -> None:
+    """``glassmap glass label`` (it reads recordings, so it lives in the runtime layer)."""
+    from runtime import label
+
+    p = glass_sub.add_parser("label", help="label a recording's beams from a floor plan (world file)",
+                             description="Align each scan of a recording to a floor plan (a world file: walls "
+                             "and glass polylines) by scan-to-plan matching from a rough initial pose and the "
+                             "odometry, then label every beam glass / not glass / unknown (near segment ends, "
+                             "unmatched returns, doubtful alignment). Writes an .npz for `glassmap glass train "
+                             "--labelled` and `glassmap glass eval --labelled`.")
+    label.add_arguments(p)
+    p.set_defaults(func=label.cmd)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,6 +47,9 @@ class LaserConfig:
     laser_frame_id: str = setting("laser", "frame id of the laser in the recording")
     cluster: int = setting(1, "SCIP cluster count (adjacent steps merged)")
     skip: int = setting(0, "SCIP skip count (scans skipped between two sent)")
+    multi_echo: str = setting("auto", "stream multi-echo scans (SCIP NE): auto = when the glass classifier reads "
+                                      "echoes (the default context model does), on, off (ME: one echo; the "
+                                      "classifier then falls back to the baseline model)")
 
     def url(self) -> str:
         if self.serial_port:
@@ -159,6 +162,8 @@ class RuntimeConfig:
         return self.base_url or self.base.url()
 
     def validate(self) -> None:
+        if self.laser.multi_echo not in ("auto", "on", "off"):
+            raise ConfigError(f"laser.multi_echo must be auto, on or off, got {self.laser.multi_echo!r}")
         m = self.mapping
         if m.registration not in ("direct", "robust"):
             raise ConfigError(f"mapping.registration must be direct or robust, got {m.registration!r}")

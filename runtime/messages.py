@@ -51,6 +51,7 @@ FOXGLOVE_TYPES = {
 # Topic -> message type of everything the runtime records.
 TOPICS: dict[str, str] = {
     "/scan": "sensor_msgs/msg/LaserScan",
+    "/scan/last_echo": "sensor_msgs/msg/LaserScan",  # multi-echo scans only (see LASTECHO_SUFFIX)
     "/odom": "nav_msgs/msg/Odometry",
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
@@ -308,8 +309,38 @@ def as_recorded_scan(scan: Scan, tb: TimeBase) -> Scan:
                          range_max=float(f(g.range_max)),
                          scan_time=float(f(g.scan_time)) if f(g.scan_time) > 0 else 0.025)
     inten = None if scan.intensities is None else scan.intensities.astype(np.float32).astype(np.float64)
+    echoes = echo_i = None
+    last = last_echo(scan)
+    if last is not None:  # recorded as the last echo only (LASTECHO_SUFFIX), so keep only that
+        echoes = last[0].astype(np.float32).astype(np.float64)[:, None]
+        echo_i = last[1].astype(np.float32).astype(np.float64)[:, None]
     return Scan(stamp=tb.host(tb.ns(scan.stamp)), ranges=scan.ranges.astype(np.float32).astype(np.float64),
-                intensities=inten, geometry=geom, sensor_stamp=scan.sensor_stamp, seq=scan.seq)
+                intensities=inten, geometry=geom, sensor_stamp=scan.sensor_stamp, seq=scan.seq,
+                echoes=echoes, echo_intensities=echo_i)
+
+
+LASTECHO_SUFFIX = "/last_echo"
+"""A multi-echo scan is recorded as two LaserScan messages with the same stamp: the first echo on the scan
+topic and, just before it, the last echo on ``<scan topic>/last_echo`` (range NaN and intensity 0 where
+a beam had one echo)."""
+
+
+def last_echo(scan: Scan) -> tuple[np.ndarray, np.ndarray] | None:
+    """(ranges (n,) m, intensities (n,)) of each beam's last echo beyond the first (NaN / 0 where it had one
+    echo), or None for a single-echo scan. ``scan.echoes`` may hold [first, last] (simulator) or the
+    further echoes (Hokuyo client): the last finite column that differs from the first echo."""
+    if scan.echoes is None:
+        return None
+    r = scan.ranges
+    e = np.asarray(scan.echoes, dtype=np.float64).reshape(r.shape[0], -1)
+    ei = (np.zeros_like(e) if scan.echo_intensities is None
+          else np.asarray(scan.echo_intensities, dtype=np.float64).reshape(r.shape[0], -1))
+    with np.errstate(invalid="ignore"):
+        fin = np.isfinite(e) & np.isfinite(r)[:, None] & (np.abs(e - r[:, None]) > 1e-6)
+    has = fin.any(axis=1)
+    col = e.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
+    rows = np.arange(r.shape[0])
+    return np.where(has, e[rows, col], np.nan), np.where(has, np.nan_to_num(ei[rows, col], nan=0.0), 0.0)
 
 
 def as_recorded_odometry(odom: Odometry, tb: TimeBase, frame_id: str = "odom",

@@ -53,6 +53,11 @@ class MappingProcessor:
         self.latest_odom: Odometry | None = None
         self.scans = 0
 
+    @property
+    def wants_echoes(self) -> bool:
+        """The glass classifier reads multi-echo scans (the laser should stream NE)."""
+        return bool(getattr(self.mapper.classifier, "uses_echoes", False))
+
     def warm_up(self) -> None:
         """Run the glass classification once on a synthetic scan (a room of 4 x 6 m), without touching the
         maps or the pose: the first torch call and the first pass through the numpy code cost tens of
@@ -63,7 +68,9 @@ class MappingProcessor:
         a = geo.angles
         with np.errstate(divide="ignore"):
             r = np.minimum(np.abs(2.0 / np.sin(a)), np.abs(3.0 / np.cos(a)))
-        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo))
+        echoes = np.full((a.shape[0], 1), np.nan) if self.wants_echoes else None  # as the laser will send
+        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo,
+                                  echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))
 
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:
         c0 = time.thread_time()

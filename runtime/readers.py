@@ -15,12 +15,14 @@ import logging
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 from mcap.records import Metadata
 from mcap.stream_reader import StreamReader
 
 from drivers.capture import Capture, Chunk
 from glassmap.types import Odometry, Scan
 from runtime.messages import (
+    LASTECHO_SUFFIX,
     RAW_BYTES_TYPE,
     TimeBase,
     odometry_from_msg,
@@ -88,11 +90,25 @@ def _iter_mcap(path: Path, scan_topic: str | None, odom_topic: str | None) -> It
     ts = typestore()
     seen_scan = False
     have_odom = False
+    echo_topic = scan_topic + LASTECHO_SUFFIX
+    pending_echo = None  # (stamp ns, last-echo LaserScan) waiting for its first-echo scan
     for r in iter_mcap_raw(path):
-        if r.topic == scan_topic and r.msgtype.endswith("LaserScan"):
+        if r.topic == echo_topic and r.msgtype.endswith("LaserScan"):
+            msg = ts.deserialize_cdr(r.data, r.msgtype)
+            pending_echo = (stamp_to_ns(msg.header.stamp), msg)
+        elif r.topic == scan_topic and r.msgtype.endswith("LaserScan"):
             msg = ts.deserialize_cdr(r.data, r.msgtype)
             seen_scan = True
-            yield scan_from_msg(msg, tb.host(stamp_to_ns(msg.header.stamp)))
+            ns = stamp_to_ns(msg.header.stamp)
+            scan = scan_from_msg(msg, tb.host(ns))
+            if pending_echo is not None and pending_echo[0] == ns:
+                er = np.asarray(pending_echo[1].ranges, dtype=np.float64)
+                ei = np.asarray(pending_echo[1].intensities, dtype=np.float64)
+                if er.shape == scan.ranges.shape:
+                    scan.echoes = er[:, None]
+                    scan.echo_intensities = (ei if ei.shape == er.shape else np.zeros_like(er))[:, None]
+            pending_echo = None
+            yield scan
         elif r.topic == odom_topic and r.msgtype == "nav_msgs/msg/Odometry":
             msg = ts.deserialize_cdr(r.data, r.msgtype)
             have_odom = True

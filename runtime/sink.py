@@ -57,6 +57,10 @@ class RecordingSink:
 
     def scan(self, scan: Scan) -> None:
         ns = self.tb.ns(scan.stamp)
+        last = M.last_echo(scan)
+        if last is not None:
+            echo = Scan(stamp=scan.stamp, ranges=last[0], intensities=last[1], geometry=scan.geometry)
+            self.rec.write("/scan" + M.LASTECHO_SUFFIX, M.laser_scan_msg(echo, ns, self.laser_frame), ns)
         self.rec.write("/scan", M.laser_scan_msg(scan, ns, self.laser_frame), ns)
 
     def odometry(self, odom: Odometry, msg=None) -> None:

@@ -1,6 +1,9 @@
-"""The shipped classifier weights load without network and separate simulated glass from wall beams."""
+"""The shipped classifiers (context and baseline) load without network and separate simulated glass from
+wall beams; the context model beats the baseline on the same beams."""
 
+import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -15,49 +18,82 @@ def clf():
     return GlassClassifier.load_default()
 
 
-def test_shipped_weights_are_small_and_load(clf):
+@pytest.fixture(scope="module")
+def base():
+    return GlassClassifier.load_default("baseline")
+
+
+def test_shipped_weights_are_small_and_load(clf, base):
     from glassmap.classifier import MODEL_DIR
 
-    assert (MODEL_DIR / "glass_mlp.pt").stat().st_size < 200_000
-    assert len([m for m in clf.model if m.__class__.__name__ == "Linear"]) == 4
-    assert clf.meta.temperature > 0
+    for m in ("context", "baseline"):
+        assert (MODEL_DIR / f"glass_{m}.pt").stat().st_size < 200_000
+    assert clf.model_name == "context" and clf.uses_echoes
+    assert base.model_name == "baseline" and not base.uses_echoes
+    assert base.meta.feature_names == ("log1p(intensity)", "distance_m", "incidence_rad")
+    assert clf.meta.feature_names[:3] == base.meta.feature_names
+    for c in (clf, base):
+        assert len([m for m in c.model if m.__class__.__name__ == "Linear"]) == 4
+        assert c.meta.temperature > 0
+        assert c.meta.report["train_seeds"] and c.meta.report["val_seeds"]
 
 
-def test_known_beams(clf):
+def test_known_beams(base):
     # a saturated return at normal incidence at 2 m: the specular glass peak
-    p = clf.predict(np.array([12000.0, 800.0]), np.array([2.0, 2.0]), np.array([0.0, math.radians(40)]))
+    p = base.predict(np.array([12000.0, 800.0]), np.array([2.0, 2.0]), np.array([0.0, math.radians(40)]))
     assert p[0] > 0.5 > p[1]
     assert p.shape == (2,) and np.all((p > 0) & (p < 1))
 
 
-@pytest.mark.parametrize("world_name", ["office", "lobby"])  # a training world and the held-out one
-def test_classifies_simulated_glass_and_wall_beams(clf, world_name):
+@pytest.mark.parametrize("world_name", ["office", "lobby"])
+def test_classifies_simulated_glass_and_wall_beams(clf, base, world_name):
     from glassmap.sim.laser import simulate_scan
     from glassmap.sim.world import load_world
     from glassmap.train import sample_poses
 
     world = load_world(world_name)
     rng = np.random.default_rng(7)
-    ys, ps = [], []
+    ys, pc, pb = [], [], []
     for pose in sample_poses(world, 25, rng):
-        s = simulate_scan(world, pose, rng)
-        inc = incidence_angles(s.geometry.angles, s.ranges).incidence
-        use = np.isfinite(inc) & np.isfinite(s.ranges)
-        ps.append(clf.predict(s.intensities[use], s.ranges[use], inc[use]))
-        ys.append(s.is_glass[use])
-    y, p = np.concatenate(ys), np.concatenate(ps)
+        sim = simulate_scan(world, pose, rng)
+        scan = sim.to_scan()
+        inc = incidence_angles(scan.angles, scan.ranges)
+        use = np.isfinite(inc.incidence) & np.isfinite(scan.ranges)
+        pc.append(clf.predict_scan(scan, inc, use))
+        pb.append(base.predict_scan(scan, inc, use))
+        # the baseline through predict_scan is the paper's f(i, d, theta)
+        np.testing.assert_allclose(pb[-1], base.predict(scan.intensities[use], scan.ranges[use],
+                                                        inc.incidence[use]), rtol=1e-6)
+        ys.append(sim.is_glass[use])
+    y = np.concatenate(ys)
+    rc, rb = binary_report(y, np.concatenate(pc)), binary_report(y, np.concatenate(pb))
     assert y.sum() > 20
-    rep = binary_report(y, p)
-    assert rep.roc_auc > 0.9
-    assert rep.balanced_accuracy > 0.8
-    assert np.mean(p[y]) > 0.6 and np.mean(p[~y]) < 0.2
+    assert rc.roc_auc > 0.99 and rc.balanced_accuracy > 0.95
+    assert rb.roc_auc > 0.9 and rb.balanced_accuracy > 0.8
+    assert rc.balanced_accuracy > rb.balanced_accuracy and rc.precision > rb.precision
 
 
-def test_bad_inputs(clf, tmp_path):
+def test_bad_inputs(clf, base, tmp_path):
     with pytest.raises(ValueError):
-        clf.predict(np.ones(3), np.ones(2), np.ones(3))
+        base.predict(np.ones(3), np.ones(2), np.ones(3))
     with pytest.raises(ValueError, match="finite"):
-        clf.predict(np.array([np.nan]), np.array([1.0]), np.array([0.1]))
-    assert clf.predict(np.zeros(0), np.zeros(0), np.zeros(0)).shape == (0,)
+        base.predict(np.array([np.nan]), np.array([1.0]), np.array([0.1]))
+    assert base.predict(np.zeros(0), np.zeros(0), np.zeros(0)).shape == (0,)
+    with pytest.raises(ClassifierError, match="baseline"):
+        clf.predict(np.ones(1), np.ones(1), np.ones(1))  # the context model needs whole scans
     with pytest.raises(ClassifierError, match="glassmap glass train"):
         GlassClassifier.load(tmp_path / "missing")
+    with pytest.raises(ClassifierError, match="shipped models"):
+        GlassClassifier.load_default("nonsense")
+
+
+def test_metadata_must_name_a_known_model(tmp_path):
+    from glassmap.classifier import shipped_stem
+
+    src = shipped_stem("baseline")
+    shutil.copy(src.with_suffix(".pt"), tmp_path / "m.pt")
+    meta = json.loads(src.with_suffix(".json").read_text())
+    meta["feature_names"] = ["log1p(intensity)", "distance_m"]
+    (tmp_path / "m.json").write_text(json.dumps(meta))
+    with pytest.raises(ClassifierError, match="not a known model"):
+        GlassClassifier.load(tmp_path / "m")

@@ -28,8 +28,10 @@ def box_scan(n=1081):
     r = t.min(axis=0)
     wall = t.argmin(axis=0)
     cos_inc = np.where(wall < 2, np.abs(c), np.abs(s))
-    # a diffuse painted wall as the simulator models it: K rho cos(alpha) / r
-    return Scan(0.0, r, 6000.0 * 0.65 * cos_inc / np.maximum(r, 0.5))
+    # a diffuse painted wall as the simulator models it: K rho cos(alpha) / r; a multi-echo scan in which
+    # every beam had one echo (the default classifier reads echoes)
+    return Scan(0.0, r, 6000.0 * 0.65 * cos_inc / np.maximum(r, 0.5), echoes=np.full((n, 1), np.nan),
+                echo_intensities=np.zeros((n, 1)))
 
 
 POSE = np.array([0.5, 0.3, 0.0])
@@ -56,6 +58,11 @@ def test_walls_become_not_glass(clf):
     assert occ.sum() > 100
     assert np.nanmean(conf) < 0.1
     assert np.isnan(b.p_glass).sum() == np.isnan(b.incidence).sum()
+    # the baseline f(i, d, theta) (single-echo input) takes some bright normal-incidence wall beams for glass
+    single = box_scan()
+    single.echoes = single.echo_intensities = None
+    bb, _ = GlassMapper(config=MapperConfig(), classifier=clf).classify(single)
+    assert np.mean(bb.p_glass[np.isfinite(bb.p_glass)] > 0.5) < 0.06
 
 
 def test_simulated_office_glass_and_walls(clf):

@@ -1,0 +1,88 @@
+"""Multi-echo scans in the runtime: streamed when the classifier reads echoes, the last echo recorded and read
+back (so a replay sees what the live run saw), single-echo input falling back to the baseline model."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from runtime import messages as M
+from runtime.config import ConfigError, RuntimeConfig
+from runtime.readers import iter_messages
+from runtime.recorder import McapRecorder
+from runtime.sink import RecordingSink
+from tests.runtime.factories import make_scan
+
+
+def _multi_echo(scan):
+    """The Hokuyo client's layout: echoes (n, 2) = second and third echo, NaN where absent."""
+    n = scan.ranges.shape[0]
+    e = np.full((n, 2), np.nan)
+    ei = np.full((n, 2), np.nan)
+    e[100:200, 0] = scan.ranges[100:200] + 2.0
+    ei[100:200, 0] = 700.0
+    e[150:160, 1] = scan.ranges[150:160] + 4.0  # a third echo: the last one counts
+    ei[150:160, 1] = 300.0
+    scan.echoes, scan.echo_intensities = e, ei
+    return scan
+
+
+def test_last_echo_is_recorded_and_read_back(tmp_path):
+    tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
+    live = [M.as_recorded_scan(_multi_echo(make_scan(1.0 + 0.025 * k, seq=k)), tb) for k in range(3)]
+    live.append(M.as_recorded_scan(make_scan(1.2, seq=9), tb))  # a single-echo scan in between
+    path = tmp_path / "me.mcap"
+    with McapRecorder(path) as rec:
+        sink = RecordingSink(rec, tb)
+        for s in live:
+            sink.scan(s)
+    assert rec.stats.written["/scan/last_echo"] == 3
+    replay = [m for m in iter_messages(path)]
+    assert len(replay) == 4
+    s0 = live[0]
+    assert s0.echoes.shape == (1081, 1)
+    np.testing.assert_allclose(s0.echoes[150:160, 0], s0.ranges[150:160] + 4.0, atol=1e-5)
+    np.testing.assert_allclose(s0.echoes[100:150, 0], s0.ranges[100:150] + 2.0, atol=1e-5)
+    assert np.isnan(s0.echoes[:100, 0]).all()
+    for a, b in zip(live[:3], replay[:3]):
+        np.testing.assert_array_equal(a.echoes, b.echoes)
+        np.testing.assert_array_equal(a.echo_intensities, b.echo_intensities)
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+    assert replay[3].echoes is None
+
+
+def test_multi_echo_setting_and_the_processor_wants_echoes():
+    from runtime.processor import MappingProcessor
+
+    cfg = RuntimeConfig()
+    assert cfg.laser.multi_echo == "auto"
+    cfg.laser.multi_echo = "sometimes"
+    with pytest.raises(ConfigError, match="multi_echo"):
+        cfg.validate()
+    assert MappingProcessor(RuntimeConfig().mapping).wants_echoes  # the shipped context model reads echoes
+
+
+def test_single_echo_scans_fall_back_to_the_baseline_with_one_log_line(caplog):
+    from glassmap.classifier import GlassClassifier
+    from glassmap.mapping import GlassMapper
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+
+    world = load_world("office")
+    rng = np.random.default_rng(3)
+    sims = [simulate_scan(world, np.array([3.0 + k, 1.2, 0.3 * k]), rng) for k in range(3)]
+    mapper = GlassMapper(classifier=GlassClassifier.load_default())
+    base = GlassMapper(classifier=GlassClassifier.load_default("baseline"))
+    with caplog.at_level(logging.WARNING, logger="glassmap.mapping"):
+        for sim in sims:
+            scan = sim.to_scan()
+            scan.echoes = scan.echo_intensities = None
+            got, use = mapper.classify(scan)
+            want, _ = base.classify(scan)
+            np.testing.assert_allclose(got.p_glass[use], want.p_glass[use])
+        multi, use = mapper.classify(sims[0].to_scan())  # with echoes: the context model again
+    lines = [r for r in caplog.records if "single-echo" in r.getMessage()]
+    assert len(lines) == 1 and "baseline" in lines[0].getMessage()
+    assert mapper.classifier_for(sims[0].to_scan()) is mapper.classifier
