@@ -100,13 +100,16 @@ class Odometry:
 
 @dataclass
 class PoseEstimate:
-    """Pose of the base in the map frame with its 3x3 covariance over (x, y, yaw) (m^2, rad^2)."""
+    """Pose of the base in the map frame with its 3x3 covariance over (x, y, yaw) (m^2, rad^2). status: the
+    estimator's track, "ok", "degraded" (the last scan match disagreed with the prediction and was not
+    used) or "lost" (several in a row: the estimate follows odometry only; do not drive on it)."""
 
     stamp: float
     x: float
     y: float
     yaw: float
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    status: str = "ok"
 
     @property
     def pose(self) -> np.ndarray:

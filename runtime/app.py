@@ -77,6 +77,9 @@ class RunSummary:
     exports: dict[str, str] = field(default_factory=dict)
     stop_reason: str = ""
     duration: float = 0.0
+    pose_status: str = ""  # the pose estimator's track status at the end ("ok", "degraded", "lost")
+    pose_gated: int = 0  # scan matches rejected by the estimator's gate (neither fused nor mapped)
+    pose_lost: int = 0  # times the track was lost
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -296,6 +299,10 @@ class Runtime:
 
     def _on_result(self, r: ScanResult) -> None:
         self.latest = r
+        if r.estimate.status == "lost" and self.driver is not None and self.stop is not None:
+            # never drive on an estimate that no longer agrees with the map: stop the robot and say why
+            st = self.processor.estimator.stats
+            self.stop.set(f"pose estimate lost at t={r.scan.stamp:.1f} s: {st.status_reason}")
         self.latency.add(r)
         if self.sink is not None:
             self.sink.result(r)
@@ -401,6 +408,10 @@ class Runtime:
     def _fill_summary(self) -> None:
         if self.stage is not None:
             self.summary.stages = self.stage.stats
+        est = getattr(self.processor, "estimator", None)
+        if est is not None:
+            s = self.summary
+            s.pose_status, s.pose_gated, s.pose_lost = est.stats.status, est.stats.gated, est.stats.lost_events
 
 
 def _record_info_logs(handler: logging.Handler):

@@ -62,6 +62,7 @@ class DemoResult:
     estimated_final_pose: np.ndarray | None = None
     true_pose_at_stop: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     trajectory: TrajectoryEvaluation | None = None
+    estimated_final_cov: np.ndarray | None = None  # its reported 3x3 covariance (m^2, rad^2)
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
     stages: dict[str, list[float]] = field(default_factory=dict)
@@ -207,6 +208,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     except Exception as exc:  # the map is still written; say why there is no score
         log.error("evaluation against the blueprint failed: %s", exc)
     est = rt.pose.pose if rt.pose is not None else None
+    est_cov = rt.pose.covariance if rt.pose is not None else None
     trajectory = None
     true_final = np.full(3, np.nan)
     if truth_path.exists() and estimates:
@@ -217,10 +219,22 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
             true_final = at[-1, 1:].copy()
     return DemoResult(summary=summary, evaluation=evaluation, png=summary.exports.get("png", ""),
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
+                      estimated_final_cov=est_cov,
                       true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
                       route_done=driver.follower.done,  # type: ignore[attr-defined]
                       latency=list(rt.latency.latency), stages=dict(rt.latency.stages),
                       device_report=report)
+
+
+def final_sigmas(res: DemoResult) -> float | None:
+    """The final position error in units of the reported covariance: sqrt(e^T P_xy^-1 e) (None without an
+    estimate or with a non-finite true pose)."""
+    if res.estimated_final_pose is None or res.estimated_final_cov is None:
+        return None
+    e = np.asarray(res.estimated_final_pose[:2]) - np.asarray(res.true_final_pose[:2])
+    if not np.all(np.isfinite(e)):
+        return None
+    return float(np.sqrt(e @ np.linalg.solve(np.asarray(res.estimated_final_cov)[:2, :2], e)))
 
 
 def format_result(res: DemoResult) -> str:
@@ -231,6 +245,11 @@ def format_result(res: DemoResult) -> str:
         lines.append(res.trajectory.describe())
     else:
         lines.append("pose error: not available (no true pose matched a processed scan)")
+    k = final_sigmas(res)
+    if k is not None:
+        lines.append(f"final pose error in the reported covariance: {k:.1f} sigma (xy Mahalanobis; "
+                     f"{'inside' if k <= 3 else 'OUTSIDE'} 3 sigma); pose track {s.pose_status or '?'}, "
+                     f"{s.pose_gated} scan matches rejected, lost {s.pose_lost} times")
     if res.latency:
         lat = np.asarray(res.latency) * 1e3
         lines.append(f"latency scan bytes in -> maps updated: p50 {np.percentile(lat, 50):.1f} ms, "

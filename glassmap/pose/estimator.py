@@ -29,13 +29,16 @@ import numpy as np
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
-from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, MatchResult, select_points
+from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
+                                   select_points)
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
 from glassmap.types import Odometry, PoseEstimate, Scan
 
 log = logging.getLogger(__name__)
 
 GLASS_LAYER = "glass"
+# chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
+_CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
 MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under its best placement
 MAP_VAR_YAW_LAYER = "pose_var_yaw"  # that placement's map rotation variance (rad^2), inf: no placement yet
 # ... the pivot (map frame, m) of that rotation, and the shift variance (m^2 per axis)
@@ -68,7 +71,17 @@ class EstimatorConfig:
         non-key scan, the result is installed at the next key scan, waiting for it if needed), so its
         10-20 ms stay off the scan-processing path; the results are the same as without it.
     gate_chi2: matches whose innovation has a squared Mahalanobis distance above this are rejected
-        (chi-square, 3 dof; 21.1 is the 99.99 % point).
+        (chi-square 99.99 % points by the number of directions fused: 15.1, 18.4, 21.1 for 1, 2, 3; this is
+        the 3-dof one, the others scale with it). A rejected match is neither fused nor integrated into the
+        map: the scan is placed only where the prediction and the map agree.
+    constrained_points: a direction of pose space is fused only if the match's end points carry the
+        information of at least this many points squarely facing it (see
+        :func:`~glassmap.pose.matcher.constrained_directions`); the others (along a featureless corridor)
+        are not measured by the scan, and the covariance keeps growing along them.
+    lost_after: this many consecutive key scans whose match was rejected by the gate make the track
+        ``lost`` (status of :class:`~glassmap.types.PoseEstimate`; logged as an error): the estimate then
+        follows odometry with a growing covariance and the map is not updated until a match passes the gate
+        again (the search window grows with the covariance, up to the matcher's maximum).
     glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
         glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5).
     protect_glass: cells with p(glass) above glass_protect_p are not cleared by beams passing through.
@@ -105,6 +118,8 @@ class EstimatorConfig:
     field_refresh_scans: int = 10
     background_field: bool = True
     gate_chi2: float = 21.1
+    constrained_points: float = 10.0
+    lost_after: int = 5
     glass_weighting: bool = False
     glass_min_weight: float = 0.1
     protect_glass: bool = False
@@ -148,6 +163,12 @@ class EstimatorStats:
     t_field: float = 0.0  # likelihood-field rebuild during the last scan (0 if none)
     t_integrate: float = 0.0  # occupancy integration of the last scan
     last_match: MatchResult | None = None
+    unconstrained: int = 0  # key-scan matches with at least one direction not fused (degenerate geometry)
+    status: str = "ok"  # track status: "ok", "degraded" (last key scan's match rejected), "lost"
+    status_reason: str = ""
+    gated_streak: int = 0  # consecutive key scans whose match the gate rejected
+    lost_events: int = 0  # times the track became lost
+    last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 
 class PoseEstimator:
@@ -283,24 +304,15 @@ class PoseEstimator:
             pts, w, _ = select_points(angles, ranges, self.mount, cfg.matcher, weights)
             res = self.matcher.match(self.field, pts, w, self.ekf.pose, self.ekf.cov)
         st.last_match = res
-        if res is None:
-            st.no_match += 1
-        else:
-            _, _, d2 = self.ekf.innovation(res.pose, res.covariance)
-            if d2 > cfg.gate_chi2:
-                st.gated += 1
-                log.debug("scan %d: match rejected by the gate (d2 = %.1f)", scan.seq, d2)
-            else:
-                rho = self._match_overlap(pts, res.pose) if cfg.correlated_matches else 0.0
-                self.ekf.correct(res.pose, res.covariance, rho)
-                st.matched += 1
-                if cfg.map_uncertainty:
-                    self.map_cov, self.map_region = self.matched_map_covariance(pts, self.ekf.pose)
+        fused = self._fuse(res, pts if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
         t3 = time.perf_counter()
-        if cfg.integrate and ranges.size:
+        # a scan whose match the gate rejected is not written into the map (nor while the track is lost):
+        # it disagrees with the map where the prediction says the robot is, so one of them is wrong
+        write = fused or (res is None and st.status != "lost")
+        if cfg.integrate and ranges.size and write:
             protect = None  # a callable: evaluated after integrate() has grown the grid to hold the scan
             if self.protect_mask_fn is not None:
                 protect = self.protect_mask_fn
@@ -308,7 +320,7 @@ class PoseEstimator:
                 protect = self.glass_protect_mask
             self.occupancy.integrate(self.laser_pose_of(self.ekf.pose), angles, ranges,
                                      scan.geometry.range_max, protect=protect)
-        if ranges.size and (cfg.map_uncertainty or cfg.subcell_walls):
+        if ranges.size and write and (cfg.map_uncertainty or cfg.subcell_walls):
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
             if not cfg.integrate:
@@ -323,6 +335,49 @@ class PoseEstimator:
         self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)
+
+    def _fuse(self, res: MatchResult | None, pts: np.ndarray | None, seq: int) -> bool:
+        """Gate and fuse a key scan's match (the directions it constrains), update the track status;
+        True when the match was fused."""
+        cfg, st = self.config, self.stats
+        st.last_fused_dims = 0
+        if res is None:
+            st.no_match += 1
+            return False
+        h = constrained_directions(res.information, res.lever, cfg.likelihood.sigma_hit, cfg.constrained_points)
+        if h.shape[0] < 3:
+            st.unconstrained += 1
+        if h.shape[0] == 0:
+            return False
+        hm = None if h.shape[0] == 3 else h
+        _, _, d2 = self.ekf.innovation(res.pose, res.covariance, hm)
+        gate = cfg.gate_chi2 * _CHI2_9999_SHARE[h.shape[0]]
+        if d2 > gate:
+            st.gated += 1
+            st.gated_streak += 1
+            if st.gated_streak >= cfg.lost_after:
+                if st.status != "lost":
+                    st.lost_events += 1
+                    st.status_reason = (f"{st.gated_streak} consecutive scan matches disagree with the prediction "
+                                        f"beyond their covariance (last: squared distance {d2:.0f} > {gate:.1f})")
+                    log.error("pose track lost at scan %d: %s", seq, st.status_reason)
+                st.status = "lost"
+            else:
+                if st.status == "ok":
+                    st.status_reason = f"scan match rejected by the gate (squared distance {d2:.0f} > {gate:.1f})"
+                    log.warning("scan %d: %s", seq, st.status_reason)
+                    st.status = "degraded"
+            return False
+        rho = self._match_overlap(pts, res.pose) if cfg.correlated_matches else 0.0
+        self.ekf.correct(res.pose, res.covariance, rho, hm)
+        st.matched += 1
+        st.last_fused_dims = h.shape[0]
+        if st.status == "lost":
+            log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
+        st.status, st.status_reason, st.gated_streak = "ok", "", 0
+        if cfg.map_uncertainty:
+            self.map_cov, self.map_region = self.matched_map_covariance(pts, self.ekf.pose)
+        return True
 
     def deskewed(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
         """(angles, ranges) of ``scan`` as seen from the laser at ``scan.stamp`` (the first beam), undoing the
@@ -500,7 +555,7 @@ class PoseEstimator:
         x, y, yaw = self.ekf.pose
         s = self._last_stamp if stamp is None else stamp
         return PoseEstimate(stamp=0.0 if s is None else s, x=float(x), y=float(y), yaw=float(yaw),
-                            covariance=self.covariance())
+                            covariance=self.covariance(), status=self.stats.status)
 
     def laser_pose_of(self, base_pose: np.ndarray) -> np.ndarray:
         """Laser pose (3,) in the map frame for a base pose (3,) in the map frame."""

@@ -291,6 +291,25 @@ class LikelihoodField:
             out = sum(c * self.fine[base + d] for d, c in corners)
         return np.where(inside, out, floor)
 
+    def wall_vectors(self, xy: np.ndarray) -> np.ndarray:
+        """Vectors (n, 2) (m) from map-frame points xy (n, 2) to their nearest wall point, interpolated
+        bilinearly as in :meth:`log_likelihood`; NaN off the field or without ``FieldParams.vectors``."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out = np.full(xy.shape, np.nan)
+        if self.vx is None:
+            return out
+        h, w = self.shape
+        g = (xy - self.origin) / self.resolution - 0.5
+        x0, y0 = np.floor(g[:, 0]), np.floor(g[:, 1])
+        ax, ay = g[:, 0] - x0, g[:, 1] - y0
+        inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+        base = np.where(inside, y0 * w + x0, 0).astype(np.int64)
+        corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (w, (1 - ax) * ay), (w + 1, ax * ay))
+        vx = sum(c * self.vx[base + d] for d, c in corners)
+        vy = sum(c * self.vy[base + d] for d, c in corners)
+        out[inside] = np.stack([vx, vy], axis=1)[inside]
+        return out
+
     def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
         """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of
         the crop's edge."""

@@ -44,26 +44,36 @@ class PoseEKF:
         self.actual_cov = 0.5 * (self.actual_cov + self.actual_cov.T)
         self.cross = ja @ self.cross
 
-    def innovation(self, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """(innovation y, innovation covariance S, squared Mahalanobis distance y^T S^-1 y)."""
+    def innovation(self, z: np.ndarray, r: np.ndarray, h: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, float]:
+        """(innovation y, innovation covariance S, squared Mahalanobis distance y^T S^-1 y) of a pose
+        measurement ``z`` (3,) with covariance ``r``; with ``h`` (k, 3) (orthonormal rows) only the k
+        directions ``h @ pose`` are measured: y = h (z - pose), S = h (P + r) h^T."""
         y = np.asarray(z, dtype=np.float64) - self.pose
         y[2] = float(wrap_angle(y[2]))
         s = self.cov + r
+        if h is not None:
+            y, s = h @ y, h @ s @ h.T
         return y, s, float(y @ np.linalg.solve(s, y))
 
-    def correct(self, z: np.ndarray, r: np.ndarray, rho: float = 0.0) -> float:
+    def correct(self, z: np.ndarray, r: np.ndarray, rho: float = 0.0, h: np.ndarray | None = None) -> float:
         """Fuse a direct pose measurement ``z`` (3,) with covariance ``r`` whose error has correlation ``rho``
         (0..1) with that of the previous measurement; returns the squared Mahalanobis distance of the
-        innovation."""
-        y, s, d2 = self.innovation(z, r)
-        k = np.linalg.solve(s.T, self.cov.T).T  # P S^-1 (S symmetric)
+        innovation. ``h`` (k, 3), orthonormal rows: fuse only the directions ``h @ pose`` (the others are not
+        measured: their covariance keeps growing with the prediction), e.g. across a corridor but not
+        along it."""
+        hm = np.eye(3) if h is None else np.asarray(h, dtype=np.float64)
+        y, s, d2 = self.innovation(z, r, None if h is None else hm)
+        k = np.linalg.solve(s.T, (self.cov @ hm.T).T).T  # P H^T S^-1 (S symmetric)
         self.pose = self.pose + k @ y
         self.pose[2] = float(wrap_angle(self.pose[2]))
-        ikh = np.eye(3) - k
-        self.cov = ikh @ self.cov @ ikh.T + k @ r @ k.T
+        kh = k @ hm
+        ikh = np.eye(3) - kh
+        khr = kh @ r @ kh.T
+        self.cov = ikh @ self.cov @ ikh.T + khr
         self.cov = 0.5 * (self.cov + self.cov.T)
         c = rho * self.cross
-        a = ikh @ self.actual_cov @ ikh.T + k @ r @ k.T + ikh @ c @ k.T + k @ c.T @ ikh.T
+        a = ikh @ self.actual_cov @ ikh.T + khr + ikh @ c @ kh.T + kh @ c.T @ ikh.T
         self.actual_cov = 0.5 * (a + a.T)
-        self.cross = ikh @ c + k @ r
+        self.cross = ikh @ c + kh @ r
         return d2

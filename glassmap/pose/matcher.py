@@ -19,7 +19,7 @@ the peak score and its neighbours (per axis), as the mean snaps to the lattice w
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -73,7 +73,9 @@ class MatcherConfig:
 class MatchResult:
     """pose (3,) base in the map frame (mean of the score distribution); covariance 3x3 (m^2, rad^2);
     peak_pose (3,) the best lattice pose; quality: mean end-point likelihood at the peak (0..1);
-    n_points used; n_poses scored; edge: the peak was on the border of the fine window."""
+    n_points used; n_poses scored; edge: the peak was on the border of the fine window; lever (m): the median
+    range of the end points; information (3, 3): that of the end points about the pose, from
+    the walls they lie on (see :meth:`CorrelativeMatcher.information` and :func:`constrained_directions`)."""
 
     pose: np.ndarray
     covariance: np.ndarray
@@ -82,6 +84,28 @@ class MatchResult:
     n_points: int
     n_poses: int
     edge: bool
+    lever: float = 1.0
+    information: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.inf))
+
+
+def constrained_directions(information: np.ndarray, lever: float, sigma_hit: float, min_points: float) -> np.ndarray:
+    """Rows (k, 3), k = 0..3: the directions of pose space (x, y, yaw) a match constrains.
+
+    ``information`` is that of the end points about the pose (:meth:`CorrelativeMatcher.information`,
+    untempered: one end point on a wall facing a direction gives 1 / sigma_hit^2 along it). Yaw is compared
+    with translation through ``lever`` (m, the median range of the end points: a yaw change d moves them
+    by about lever * d), and an eigen-direction counts as constrained when it carries the information of
+    at least ``min_points`` end points squarely facing it: a single stray point at the ragged end of a
+    mapped wall is not a feature, and the score's spread over the window is not a test (along a featureless
+    corridor it still shows spurious peaks). The rows are mapped back to pose space; fusing only them lets
+    the covariance keep growing along the others."""
+    if not np.all(np.isfinite(information)) or not lever > 0:
+        return np.eye(3)
+    d = np.array([1.0, 1.0, 1.0 / lever])
+    jn = information * np.outer(d, d)
+    vals, vecs = np.linalg.eigh(0.5 * (jn + jn.T))
+    keep = vals >= min_points / sigma_hit ** 2
+    return (vecs[:, keep] / d[:, None]).T
 
 
 def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, config: MatcherConfig,
@@ -303,8 +327,39 @@ class CorrelativeMatcher:
                                                         beta, margin)
         cov += within
         n_poses += n_within
+        info = self.information(fld, pts, w, pose)
         return MatchResult(pose=pose, covariance=cov, peak_pose=peak, quality=quality,
-                           n_points=int(pts.shape[0]), n_poses=int(n_poses), edge=bool(edge))
+                           n_points=int(pts.shape[0]), n_poses=int(n_poses), edge=bool(edge),
+                           lever=float(np.median(r)), information=info)
+
+    def information(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Information (3x3, inverse covariance over x, y, yaw; untempered) of the end points at ``pose``
+        about the pose, from the geometry of the walls they lie on (Gauss-Newton): each end point's residual
+        is its vector v(q) to the nearest wall point, whose Jacobian J = dv/dq is -n n^T on a straight wall
+        of normal n (the point may slide along the wall) and -I at an isolated wall point. A point within
+        sigma_hit of the wall adds w r A^T A / sigma_hit^2 with A = J [I, perp(R p)] and r its inlier weight
+        (the Gaussian's share of the likelihood). A straight wall gives nothing along itself, however its
+        end points scatter. (The score's own curvature over a lattice step is not a test: end points moving
+        in and out of the ragged edge of the map, where grazing beams cleared cells, make a featureless
+        corridor look constrained.)"""
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        rp = np.stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]], axis=1)
+        q = pose[:2] + rp
+        eps = 0.25 * fld.resolution
+        v = fld.wall_vectors(q)
+        jx = (fld.wall_vectors(q + [eps, 0.0]) - fld.wall_vectors(q - [eps, 0.0])) / (2 * eps)  # dv/dx (n, 2)
+        jy = (fld.wall_vectors(q + [0.0, eps]) - fld.wall_vectors(q - [0.0, eps])) / (2 * eps)
+        p = fld.params
+        d = np.hypot(v[:, 0], v[:, 1])
+        ok = np.isfinite(d) & (d < p.sigma_hit) & np.all(np.isfinite(jx) & np.isfinite(jy), axis=1)
+        if not ok.any():
+            return np.zeros((3, 3))
+        jac = np.stack([jx[ok], jy[ok]], axis=2)  # (m, 2, 2): [component, d/dx or d/dy]
+        lever = np.stack([-rp[ok, 1], rp[ok, 0]], axis=1)  # d(R p)/d(yaw)
+        a = np.concatenate([jac, np.einsum("mij,mj->mi", jac, lever)[:, :, None]], axis=2)  # (m, 2, 3)
+        g = np.exp(-0.5 * (d[ok] / p.sigma_hit) ** 2)
+        r = w[ok] * g / (g + p.p_floor)
+        return np.einsum("m,mki,mkj->ij", r, a, a) / p.sigma_hit ** 2
 
     def _within_cell_covariance(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, center: np.ndarray,
                                 step: float, beta: float, margin: int) -> tuple[np.ndarray, int]:

@@ -1,0 +1,111 @@
+"""Degenerate geometry and divergence: directions a scan does not constrain are not fused; a match that
+disagrees with the prediction is neither fused nor written into the map; several in a row lose the track."""
+
+import numpy as np
+import pytest
+
+from glassmap.pose import EstimatorConfig, PoseEstimator
+from glassmap.pose.filter import PoseEKF
+from glassmap.pose.matcher import constrained_directions
+from glassmap.pose.motion import compose
+from glassmap.types import Odometry
+from tests.pose.synth import box, corridor, make_scan
+from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.pose.estimator import HIT_LAYERS
+from glassmap.pose.field import LikelihoodField
+from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, select_points
+
+PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
+
+
+def _map_from(segments, poses):
+    """The estimator's likelihood field (walls at the mean of their end points) of scans at ``poses``."""
+    est = PoseEstimator(EstimatorConfig(keyframe_distance=0.0, keyframe_angle=0.0, laser_mount=(0.0, 0.0, 0.0)),
+                        OccupancyGrid(MapGrid()))
+    for i, p in enumerate(poses):
+        s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
+        est.occupancy.integrate(p, s.angles, s.ranges)
+        est.ekf.pose = np.asarray(p, dtype=float)
+        est._store_hits(s.angles, s.ranges, s.geometry.range_max)
+    fld = LikelihoodField()
+    fld.rebuild(est.occupancy, np.asarray(poses[0][:2]), tuple(est.occupancy.grid[n] for n in HIT_LAYERS))
+    return fld
+
+
+def _match(fld, segments, true_pose):
+    s = make_scan(segments, true_pose, noise=0.01, rng=np.random.default_rng(7))
+    m = CorrelativeMatcher(MatcherConfig())
+    pts, w, _ = select_points(s.angles, s.ranges, np.zeros(3), m.config)
+    return m.match(fld, pts, w, np.zeros(3), PRIOR)
+
+
+def test_a_straight_corridor_constrains_across_and_yaw_but_not_along():
+    segs = corridor(60.0)
+    fld = _map_from(segs, [np.array([x, 0.0, 0.0]) for x in np.arange(-5.0, 5.01, 0.5)])
+    r = _match(fld, segs, np.array([0.06, -0.04, np.radians(0.5)]))
+    h = constrained_directions(r.information, r.lever, 0.03, 10.0)
+    assert h.shape == (2, 3)
+    along = np.array([1.0, 0.0, 0.0])
+    assert np.all(np.abs(h @ along) < 0.05 * np.linalg.norm(h, axis=1))  # nothing measured along x
+
+
+def test_a_box_constrains_every_direction():
+    segs = box(-2.0, -1.5, 3.0, 2.0)
+    fld = _map_from(segs, [np.array([0.05 * i, -0.03 * i, 0.01 * i]) for i in range(3)])
+    r = _match(fld, segs, np.array([0.04, 0.02, np.radians(0.3)]))
+    assert constrained_directions(r.information, r.lever, 0.03, 10.0).shape == (3, 3)
+
+
+def test_one_stray_point_is_not_a_constraint():
+    info = np.diag([1.0, 200.0, 5e4]) / 0.03 ** 2  # one point facing x, 200 facing y
+    h = constrained_directions(info, 5.0, 0.03, 10.0)
+    assert h.shape[0] == 2 and np.all(np.abs(h[:, 0]) < 1e-9)
+
+
+def test_a_partial_measurement_leaves_the_unmeasured_direction_growing():
+    ekf = PoseEKF(np.zeros(3), np.diag([0.01, 0.01, 1e-4]))
+    h = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    ekf.correct(np.array([0.5, 0.02, 0.0]), np.diag([1e-4, 1e-4, 1e-6]), h=h)
+    assert ekf.pose[0] == pytest.approx(0.0)  # the x of the measurement is ignored
+    assert ekf.cov[0, 0] == pytest.approx(0.01) and ekf.cov[1, 1] < 2e-4
+    full = PoseEKF(np.zeros(3), np.diag([0.01, 0.01, 1e-4]))
+    full.correct(np.array([0.5, 0.02, 0.0]), np.diag([1e-4, 1e-4, 1e-6]))
+    assert full.pose[0] > 0.4  # with all three the x is pulled to the match
+
+
+def _drive_in_box(est, n, kick_at=None, kick=np.zeros(3)):
+    """Drive slowly in a box; odometry jumps by ``kick`` at scan ``kick_at`` (the robot does not)."""
+    segs = box(-3.0, -2.0, 4.0, 2.5)
+    rng = np.random.default_rng(5)
+    true, odom = np.zeros(3), np.zeros(3)
+    out = []
+    for k in range(n):
+        step = np.array([0.02, 0.0, 0.0])
+        if k:
+            true = compose(true, step)
+            odom = compose(odom, step)
+        if k == kick_at:
+            odom = odom + kick
+        t = 0.025 * k
+        est.predict(Odometry(stamp=t, x=odom[0], y=odom[1], yaw=odom[2], v=0.8, omega=0.0))
+        e = est.update(make_scan(segs, compose(true, est.mount), stamp=t, noise=0.01, rng=rng))
+        out.append((e, true.copy()))
+    return out
+
+
+def test_an_odometry_jump_is_gated_not_mapped_and_the_track_is_reported_lost():
+    est = PoseEstimator(EstimatorConfig(lost_after=3))
+    out = _drive_in_box(est, 80, kick_at=30, kick=np.array([0.0, 0.6, 0.0]))
+    assert est.stats.gated >= 3 and est.stats.lost_events >= 1
+    statuses = [e.status for e, _ in out]
+    assert statuses[:30] == ["ok"] * 30 and "lost" in statuses[30:]
+    # the wrong poses were not written into the map: nothing occupied where the box walls would be shifted
+    g = est.occupancy.grid
+    ghost = g.world_to_cell(np.array([[1.0, 2.5 + 0.6], [1.0, -2.0 + 0.6]]))
+    assert np.all(est.occupancy.log_odds[ghost[:, 1], ghost[:, 0]] <= 0.6)
+
+
+def test_consistent_driving_stays_ok():
+    est = PoseEstimator(EstimatorConfig())
+    out = _drive_in_box(est, 60)
+    assert all(e.status == "ok" for e, _ in out) and est.stats.gated == 0
