@@ -33,9 +33,11 @@ def register(subparsers) -> None:
     add_worlds(e, ",".join(DEFAULT_WORLDS))
     add_seeds(e, "0")
     e.add_argument("--route", default=None, help="route name (default: each world's default route)")
-    e.add_argument("--glass-weighting", choices=["off", "oracle"], default="off",
-                   help="down-weight beams ending on glass cells: 'oracle' writes the true glass cells into the "
-                   "grid's glass layer first (the best case of the glass map); default off")
+    e.add_argument("--glass-weighting", choices=["off", "online", "oracle"], default="off",
+                   help="down-weight beams ending on glass cells and beams seen through glass (mirror ghosts): "
+                   "'online' builds the glass map as the runtime does (classifier + glass mapper at the "
+                   "estimated poses), 'oracle' writes the true glass cells into the grid's glass layer first "
+                   "(the best case); default off")
     e.add_argument("--every-scan", action="store_true",
                    help="match and integrate every scan (no motion filter, EstimatorConfig.keyframe_*); default: "
                    "key scans only")
@@ -91,7 +93,13 @@ def _eval(args: argparse.Namespace) -> int:
     worlds = [w.strip() for w in args.worlds.split(",") if w.strip()]
     seeds = args.seeds
     oracle = args.glass_weighting == "oracle"
-    cfg = replace(EstimatorConfig(), glass_weighting=oracle)
+    online = args.glass_weighting == "online"
+    cfg = replace(EstimatorConfig(), glass_weighting=oracle or online)
+    clf = None
+    if online:
+        from glassmap.classifier import GlassClassifier
+
+        clf = GlassClassifier.load_default()
     if args.every_scan:
         cfg = replace(cfg, keyframe_distance=0.0, keyframe_angle=0.0)
     if args.deskew:
@@ -103,11 +111,12 @@ def _eval(args: argparse.Namespace) -> int:
     rows = []
     jobs = [(w, s) for w in worlds for s in seeds]
     for w, s in tqdm(jobs, desc="pose eval", unit="run", disable=args.no_progress):
-        m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion)
+        m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion,
+                         glass_online=online, classifier=clf)
         rows.append(m.as_dict())
         tqdm.write(_line(m.as_dict()))
     os.makedirs(args.out, exist_ok=True)
-    stem = os.path.join(args.out, "pose_eval" + ("_glass_oracle" if oracle else "")
+    stem = os.path.join(args.out, "pose_eval" + (f"_glass_{args.glass_weighting}" if oracle or online else "")
                         + ("_every_scan" if args.every_scan else "")
                         + ("_sweep" if args.sweep_motion else "") + ("_deskew" if args.deskew else "")
                         + (f"_noret{args.no_return_range:g}" if args.no_return_range is not None else ""))

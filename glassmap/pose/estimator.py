@@ -83,7 +83,9 @@ class EstimatorConfig:
         follows odometry with a growing covariance and the map is not updated until a match passes the gate
         again (the search window grows with the covariance, up to the matcher's maximum).
     glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
-        glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5).
+        glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5); behind_glass_weight
+        multiplies the weight of beams that pass a believed-glass cell more than glass_behind_margin (m)
+        before their end (through-glass returns and mirror ghosts; 1 turns it off). See glass_weights.
     protect_glass: cells with p(glass) above glass_protect_p are not cleared by beams passing through.
     integrate: integrate each key scan into the occupancy grid at the corrected pose.
     subcell_walls: keep the mean end-point position per cell (layers ``pose_hit_*``) and measure the
@@ -122,6 +124,8 @@ class EstimatorConfig:
     lost_after: int = 5
     glass_weighting: bool = False
     glass_min_weight: float = 0.1
+    behind_glass_weight: float = 0.2
+    glass_behind_margin: float = 0.15
     protect_glass: bool = False
     glass_protect_p: float = 0.7
     integrate: bool = True
@@ -296,12 +300,11 @@ class PoseEstimator:
         angles = scan.angles
         if cfg.deskew and len(self.odometry) and ranges.size > 1:
             angles, ranges = self.deskewed(scan)
-        weights = None
-        if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names:
-            weights = self.glass_weights(self.laser_pose_of(self.ekf.pose), angles, ranges)
         res = None
         if ranges.size and self.field.ready:
-            pts, w, _ = select_points(angles, ranges, self.mount, cfg.matcher, weights)
+            pts, w, idx = select_points(angles, ranges, self.mount, cfg.matcher)
+            if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names and idx.size:
+                w = w * self.glass_weights(self.laser_pose_of(self.ekf.pose), angles[idx], ranges[idx])
             res = self.matcher.match(self.field, pts, w, self.ekf.pose, self.ekf.cov)
         st.last_match = res
         fused = self._fuse(res, pts if res is not None else None, scan.seq)
@@ -606,14 +609,28 @@ class PoseEstimator:
         return out
 
     def glass_weights(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-        """Matching weight per beam (n,): 1 for beams whose end point is not believed glass, falling
-        linearly to ``glass_min_weight`` as p(glass) of the end point's cell goes from 0.5 to 1."""
+        """Matching weight per beam (n,) from the ``"glass"`` layer: falling linearly from 1 to
+        ``glass_min_weight`` as p(glass) of the end point's cell goes from 0.5 to 1 (a pane is seen only near
+        normal incidence, so the map holds it only partly), times ``behind_glass_weight`` for a beam whose
+        path crosses a cell believed glass (p > 0.5) more than ``glass_behind_margin`` (m) before its end:
+        what is seen through a pane, and mirror images (ghost points) of what is in front of it, which lie
+        behind the pane at the unfolded path length."""
         r = np.where(np.isfinite(ranges), ranges, 0.0)
         a = laser_pose[2] + angles
-        xy = laser_pose[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
-        p = self.glass_probability_at(xy)
+        u = np.stack([np.cos(a), np.sin(a)], axis=1)
+        p = self.glass_probability_at(laser_pose[:2] + r[:, None] * u)
         k = np.clip(2.0 * p - 1.0, 0.0, 1.0)
-        return 1.0 - (1.0 - self.config.glass_min_weight) * k
+        w = 1.0 - (1.0 - self.config.glass_min_weight) * k
+        if self.config.behind_glass_weight < 1.0 and r.size:
+            res = self.occupancy.grid.resolution
+            reach = np.maximum(r - self.config.glass_behind_margin, 0.0)
+            steps = np.arange(0.0, float(reach.max()) + res, 0.5 * res)  # (T,) half-cell steps along the beams
+            inside = steps[None, :] < reach[:, None]  # (n, T)
+            xy = laser_pose[:2][None, None, :] + steps[None, :, None] * u[:, None, :]
+            pg = self.glass_probability_at(xy.reshape(-1, 2)).reshape(inside.shape)
+            behind = np.any(inside & (pg > 0.5), axis=1)
+            w = np.where(behind, w * self.config.behind_glass_weight, w)
+        return w
 
     def glass_protect_mask(self) -> np.ndarray | None:
         """(H, W) bool: cells whose p(glass) exceeds ``glass_protect_p`` (None without a glass layer)."""

@@ -71,7 +71,8 @@ class RunMetrics:
 
 
 def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = True, glass_oracle: bool = False,
-                  on_scan=None, progress: bool = False, occupancy=None) -> tuple[Trajectory, PoseEstimator]:
+                  on_scan=None, progress: bool = False, occupancy=None, world=None, glass_online: bool = False,
+                  classifier=None) -> tuple[Trajectory, PoseEstimator]:
     """Feed a :class:`glassmap.sim.dataset.SimRun` through a fresh :class:`PoseEstimator`.
 
     The estimator starts at the true pose of the first odometry sample (that anchors the map frame), with
@@ -80,6 +81,10 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     the simulator's true glass cells into a ``"glass"`` layer (p = 0.95) before the run, to measure what
     glass down-weighting can give at best. ``on_scan(i, scan, estimate, estimator)`` is called after each
     update (the online glass mappers hook in here). ``occupancy``: the grid to build (default: a new one).
+    ``world``: the run's world (a :class:`~glassmap.sim.world.World`, a name or a path) for the oracle
+    (default: ``run.world_name``, a built-in name). ``glass_online``: build the glass map online as the
+    runtime does (a :class:`~glassmap.mapping.GlassMapper` with ``classifier`` on the estimator's grid, its
+    ``"glass"`` layer read by ``EstimatorConfig.glass_weighting``; every scan).
     """
     mount = tuple(run.params.get("robot", {}).get("laser_offset", (0.1, 0.0, 0.0)))
     start = np.asarray(run.odom_true_poses[0], dtype=np.float64)
@@ -87,7 +92,9 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     cfg = replace(base, laser_mount=tuple(float(v) for v in mount), initial_pose=tuple(float(v) for v in start))
     est = PoseEstimator(cfg, occupancy)
     if glass_oracle:
-        _write_glass_oracle(est, run)
+        write_glass_oracle(est, run, world)
+    if glass_online:
+        on_scan = _online_glass_hook(est, classifier, on_scan)
     odo = run.odometry()
     o_t = run.odom_stamps
     s = run.n_scans
@@ -138,11 +145,34 @@ def _odometry_in_map(run, start: np.ndarray) -> np.ndarray:
     return out
 
 
-def _write_glass_oracle(est: PoseEstimator, run) -> None:
-    from glassmap.sim.blueprint import Blueprint
-    from glassmap.sim.world import load_world
+def _online_glass_hook(est: PoseEstimator, classifier, then):
+    """An on_scan hook running the runtime's glass path (classify, register, update the glass map) on the
+    estimator's grid at the estimated pose, then ``then``."""
+    from glassmap.mapping import GlassMapper
 
-    world = load_world(run.world_name)
+    if classifier is None:
+        from glassmap.classifier import GlassClassifier
+
+        classifier = GlassClassifier.load_default()
+    mapper = GlassMapper(est.occupancy, classifier=classifier)
+    est.protect_mask_fn = mapper.protect_mask
+
+    def hook(i, scan, e, estimator):
+        sigma = estimator.registration_sigma(e, scan.ranges)
+        mapper.process(scan, estimator.laser_pose(e), sigma, update_occupancy=False)
+        if then is not None:
+            then(i, scan, e, estimator)
+
+    return hook
+
+
+def write_glass_oracle(est: PoseEstimator, run, world=None) -> None:
+    """Write the true glass cells of ``world`` (a World, a built-in name or a world file; default
+    ``run.world_name``) into the estimator grid's ``"glass"`` layer (p = 0.95)."""
+    from glassmap.sim.blueprint import Blueprint
+    from glassmap.sim.world import World, load_world
+
+    world = world if isinstance(world, World) else load_world(world if world is not None else run.world_name)
     bp = Blueprint.from_world(world, resolution=est.occupancy.grid.resolution)
     g = est.occupancy.grid
     lo, hi = bp.origin, bp.origin + np.array(bp.labels.shape[::-1]) * bp.resolution
@@ -184,7 +214,8 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
 
 def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConfig | None = None, *,
                  causal: bool = True, glass_oracle: bool = False, progress: bool = False,
-                 run_cache: dict | None = None, sweep_motion: bool = False) -> RunMetrics:
+                 run_cache: dict | None = None, sweep_motion: bool = False, glass_online: bool = False,
+                 classifier=None) -> RunMetrics:
     """Simulate (or take from ``run_cache``) one run and evaluate the estimator on it. ``sweep_motion``: the
     simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``)."""
     from glassmap.sim.dataset import simulate_run
@@ -195,5 +226,6 @@ def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConf
         run = simulate_run(world, route, seed=seed, sweep_motion=sweep_motion)
         if run_cache is not None:
             run_cache[key] = run
-    traj, _ = run_estimator(run, config, causal=causal, glass_oracle=glass_oracle, progress=progress)
+    traj, _ = run_estimator(run, config, causal=causal, glass_oracle=glass_oracle, progress=progress, world=world,
+                            glass_online=glass_online, classifier=classifier)
     return metrics(traj, run)

@@ -109,3 +109,31 @@ def test_consistent_driving_stays_ok():
     est = PoseEstimator(EstimatorConfig())
     out = _drive_in_box(est, 60)
     assert all(e.status == "ok" for e, _ in out) and est.stats.gated == 0
+
+
+def test_beams_seen_through_believed_glass_are_down_weighted():
+    """A beam ending behind a pane the glass map believes in (a through-glass return or a mirror ghost) gets
+    behind_glass_weight; one ending in front of it or on it does not."""
+    est = PoseEstimator(EstimatorConfig(glass_min_weight=0.1, behind_glass_weight=0.2))
+    g = est.occupancy.grid
+    g.add_layer("glass", 0.0, np.float32)
+    for y in np.arange(-0.5, 0.51, 0.05):
+        ix, iy = g.world_to_cell(np.array([2.0, y]))
+        g["glass"][iy, ix] = np.log(0.95 / 0.05)
+    w = est.glass_weights(np.zeros(3), np.zeros(3), np.array([1.5, 2.01, 3.5]))
+    assert w[0] == 1.0
+    assert w[1] == pytest.approx(1 - 0.9 * 0.9, abs=1e-6)  # on the pane: the end-point rule only
+    assert w[2] == pytest.approx(0.2)  # behind it
+
+
+def test_the_glass_oracle_reads_a_world_given_as_a_path(tmp_path):
+    from pathlib import Path
+
+    from glassmap.pose.evaluate import write_glass_oracle
+
+    src = Path(__file__).parents[2] / "glassmap" / "worlds" / "glass-corridor.toml"
+    path = tmp_path / "my-bridge.toml"
+    path.write_text(src.read_text().replace('name = "glass-corridor"', 'name = "not-a-built-in-name"'))
+    est = PoseEstimator(EstimatorConfig())
+    write_glass_oracle(est, None, str(path))
+    assert (est.occupancy.grid["glass"] > 0).sum() > 100
