@@ -19,16 +19,17 @@ PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
 
 
 def _map_from(segments, poses):
-    """The estimator's likelihood field (walls at the mean of their end points) of scans at ``poses``."""
-    est = PoseEstimator(EstimatorConfig(keyframe_distance=0.0, keyframe_angle=0.0, laser_mount=(0.0, 0.0, 0.0)),
+    """The estimator's likelihood field (walls at the mean of their end points) of scans at ``poses``, the
+    estimator driven there by exact odometry."""
+    p0 = poses[0]
+    est = PoseEstimator(EstimatorConfig(keyframe_distance=0.0, keyframe_angle=0.0, laser_mount=(0.0, 0.0, 0.0),
+                                        initial_pose=tuple(float(v) for v in p0), background_field=False),
                         OccupancyGrid(MapGrid()))
     for i, p in enumerate(poses):
-        s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
-        est.occupancy.integrate(p, s.angles, s.ranges)
-        est.ekf.pose = np.asarray(p, dtype=float)
-        est._store_hits(s.angles, s.ranges, s.geometry.range_max)
+        est.predict(Odometry(stamp=0.1 * i, x=float(p[0]), y=float(p[1]), yaw=float(p[2]), v=0.0, omega=0.0))
+        est.update(make_scan(segments, p, stamp=0.1 * i, noise=0.01, rng=np.random.default_rng(100 + i)))
     fld = LikelihoodField()
-    fld.rebuild(est.occupancy, np.asarray(poses[0][:2]), tuple(est.occupancy.grid[n] for n in HIT_LAYERS))
+    fld.rebuild(est.occupancy, np.asarray(p0[:2]), tuple(est.occupancy.grid[n] for n in HIT_LAYERS))
     return fld
 
 
