@@ -4,16 +4,15 @@ disagrees with the prediction is neither fused nor written into the map; several
 import numpy as np
 import pytest
 
+from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.pose import EstimatorConfig, PoseEstimator
+from glassmap.pose.estimator import HIT_LAYERS
+from glassmap.pose.field import LikelihoodField
 from glassmap.pose.filter import PoseEKF
-from glassmap.pose.matcher import constrained_directions
+from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, constrained_directions, select_points
 from glassmap.pose.motion import compose
 from glassmap.types import Odometry
 from tests.pose.synth import box, corridor, make_scan
-from glassmap.grid import MapGrid, OccupancyGrid
-from glassmap.pose.estimator import HIT_LAYERS
-from glassmap.pose.field import LikelihoodField
-from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, select_points
 
 PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
 
@@ -138,3 +137,22 @@ def test_the_glass_oracle_reads_a_world_given_as_a_path(tmp_path):
     est = PoseEstimator(EstimatorConfig())
     write_glass_oracle(est, None, str(path))
     assert (est.occupancy.grid["glass"] > 0).sum() > 100
+
+
+@pytest.mark.slow
+def test_the_end_of_a_40_m_featureless_corridor_is_inside_3_sigma_along_it():
+    """Driving 40 m down a straight corridor whose ends are out of matching range: the position along it is
+    not observable, so it is not fused; the covariance grows with the odometry and covers the error."""
+    from pathlib import Path
+
+    from glassmap.pose.evaluate import run_estimator
+    from glassmap.sim.dataset import simulate_run
+    from glassmap.sim.world import load_world
+
+    run = simulate_run(load_world(str(Path(__file__).parent / "data" / "featureless-corridor.toml")), None, seed=0)
+    traj, est = run_estimator(run, EstimatorConfig())
+    e = traj.poses[-1] - traj.truth[-1]
+    along = np.array([np.cos(traj.truth[-1, 2]), np.sin(traj.truth[-1, 2]), 0.0])
+    sigma = float(np.sqrt(along @ traj.covs[-1] @ along))
+    assert abs(float(e @ along)) < 3.0 * sigma
+    assert est.stats.unconstrained > 0.3 * est.stats.matched
