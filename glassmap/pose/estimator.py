@@ -368,7 +368,7 @@ class PoseEstimator:
             else:
                 if st.status == "ok":
                     st.status_reason = f"scan match rejected by the gate (squared distance {d2:.0f} > {gate:.1f})"
-                    log.warning("scan %d: %s", seq, st.status_reason)
+                    log.info("scan %d: %s", seq, st.status_reason)
                     st.status = "degraded"
             return False
         rho = self._match_overlap(pts, res.pose) if cfg.correlated_matches else 0.0
