@@ -307,14 +307,14 @@ class PoseEstimator:
                 w = w * self.glass_weights(self.laser_pose_of(self.ekf.pose), angles[idx], ranges[idx])
             res = self.matcher.match(self.field, pts, w, self.ekf.pose, self.ekf.cov)
         st.last_match = res
-        fused = self._fuse(res, pts if res is not None else None, scan.seq)
+        accepted = self._fuse(res, pts if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
         t3 = time.perf_counter()
         # a scan whose match the gate rejected is not written into the map (nor while the track is lost):
         # it disagrees with the map where the prediction says the robot is, so one of them is wrong
-        write = fused or (res is None and st.status != "lost")
+        write = st.status != "lost" and (accepted or res is None)
         if cfg.integrate and ranges.size and write:
             protect = None  # a callable: evaluated after integrate() has grown the grid to hold the scan
             if self.protect_mask_fn is not None:
@@ -341,7 +341,8 @@ class PoseEstimator:
 
     def _fuse(self, res: MatchResult | None, pts: np.ndarray | None, seq: int) -> bool:
         """Gate and fuse a key scan's match (the directions it constrains), update the track status;
-        True when the match was fused."""
+        False when the match was rejected by the gate or there was none (True also when it constrained no
+        direction: nothing to fuse, nothing contradicted)."""
         cfg, st = self.config, self.stats
         st.last_fused_dims = 0
         if res is None:
@@ -351,7 +352,7 @@ class PoseEstimator:
         if h.shape[0] < 3:
             st.unconstrained += 1
         if h.shape[0] == 0:
-            return False
+            return True
         hm = None if h.shape[0] == 3 else h
         _, _, d2 = self.ekf.innovation(res.pose, res.covariance, hm)
         gate = cfg.gate_chi2 * _CHI2_9999_SHARE[h.shape[0]]
