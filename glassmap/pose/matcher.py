@@ -346,9 +346,10 @@ class CorrelativeMatcher:
         rp = np.stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]], axis=1)
         q = pose[:2] + rp
         eps = 0.25 * fld.resolution
-        v = fld.wall_vectors(q)
-        jx = (fld.wall_vectors(q + [eps, 0.0]) - fld.wall_vectors(q - [eps, 0.0])) / (2 * eps)  # dv/dx (n, 2)
-        jy = (fld.wall_vectors(q + [0.0, eps]) - fld.wall_vectors(q - [0.0, eps])) / (2 * eps)
+        offs = np.array([[0.0, 0.0], [eps, 0.0], [-eps, 0.0], [0.0, eps], [0.0, -eps]])
+        vs = fld.wall_vectors((q[None, :, :] + offs[:, None, :]).reshape(-1, 2)).reshape(5, -1, 2)  # one gather
+        v = vs[0]
+        jx, jy = (vs[1] - vs[2]) / (2 * eps), (vs[3] - vs[4]) / (2 * eps)  # dv/dx, dv/dy (n, 2)
         p = fld.params
         d = np.hypot(v[:, 0], v[:, 1])
         ok = np.isfinite(d) & (d < p.sigma_hit) & np.all(np.isfinite(jx) & np.isfinite(jy), axis=1)
