@@ -32,7 +32,7 @@ from glassmap.pose.filter import PoseEKF
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points)
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
-from glassmap.types import Odometry, PoseEstimate, Scan
+from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -361,6 +361,12 @@ class PoseEstimator:
             st.gated_streak += 1
             if st.gated_streak >= cfg.lost_after:
                 if st.status != "lost":
+                    # the matches disagree with the prediction by about the innovation: the error is at least
+                    # that large, so the covariance (and with it the search window) is widened to cover it
+                    y = res.pose - self.ekf.pose
+                    y[2] = float(wrap_angle(y[2]))
+                    self.ekf.cov = self.ekf.cov + np.outer(y, y)
+                    self.ekf.actual_cov = self.ekf.actual_cov + np.outer(y, y)
                     st.lost_events += 1
                     st.status_reason = (f"{st.gated_streak} consecutive scan matches disagree with the prediction "
                                         f"beyond their covariance (last: squared distance {d2:.0f} > {gate:.1f})")

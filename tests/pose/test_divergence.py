@@ -99,6 +99,8 @@ def test_an_odometry_jump_is_gated_not_mapped_and_the_track_is_reported_lost():
     assert est.stats.gated >= 3 and est.stats.lost_events >= 1
     statuses = [e.status for e, _ in out]
     assert statuses[:30] == ["ok"] * 30 and "lost" in statuses[30:]
+    lost = out[statuses.index("lost")][0]
+    assert np.sqrt(lost.covariance[1, 1]) > 0.3  # the covariance is widened to cover the 0.6 m disagreement
     # the wrong poses were not written into the map: nothing occupied where the box walls would be shifted
     g = est.occupancy.grid
     ghost = g.world_to_cell(np.array([[1.0, 2.5 + 0.6], [1.0, -2.0 + 0.6]]))
