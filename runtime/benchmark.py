@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.parallel import job_executor, local_workers
+
 PARTS = ("classifier", "map", "experiment", "pose", "demo")
 BUILTIN = ("office", "glass-corridor", "room", "lobby")
 METHODS = ("direct", "robust3", "robust5")
@@ -236,44 +238,28 @@ def run_tasks(tasks: list[Task], cfg: BenchmarkConfig, *, workers: int | None = 
         from tqdm import tqdm
 
         bar = tqdm(total=len(tasks), desc="benchmark", unit="task")
-    client = None
-    if dask_address:
-        try:
-            from distributed import Client
-        except ImportError:
-            raise RuntimeError("a Dask cluster needs the 'distributed' package: pip install 'glassmap[dask]'") from None
-        client = Client(dask_address)
-        executor: concurrent.futures.Executor = client.get_executor()
-    elif (workers or os.cpu_count() or 1) <= 1:
-        executor = None  # type: ignore[assignment]
-    else:
-        executor = concurrent.futures.ProcessPoolExecutor(max_workers=min(workers or os.cpu_count() or 1,
-                                                                          max(1, len(tasks))))
     try:
-        if executor is None:
+        if dask_address is None and local_workers(workers, len(tasks)) <= 1:
             for i, t in enumerate(tasks):
                 results[i] = run_task(t, cfg)
                 if bar is not None:
                     bar.set_postfix_str(f"{t.world} {t.part}", refresh=False)
                     bar.update(1)
         else:
-            futs = {executor.submit(_run_task_args, (t, cfg)): i for i, t in enumerate(tasks)}
-            for fut in concurrent.futures.as_completed(futs):
-                i = futs[fut]
-                try:
-                    results[i] = fut.result()
-                except Exception as exc:  # a crashed worker
-                    results[i] = TaskResult(tasks[i], error=f"{type(exc).__name__}: {exc}")
-                if bar is not None:
-                    bar.set_postfix_str(f"{tasks[i].world} {tasks[i].part}", refresh=False)
-                    bar.update(1)
+            with job_executor(len(tasks), workers, dask_address) as executor:
+                futs = {executor.submit(_run_task_args, (t, cfg)): i for i, t in enumerate(tasks)}
+                for fut in concurrent.futures.as_completed(futs):
+                    i = futs[fut]
+                    try:
+                        results[i] = fut.result()
+                    except Exception as exc:  # a crashed worker
+                        results[i] = TaskResult(tasks[i], error=f"{type(exc).__name__}: {exc}")
+                    if bar is not None:
+                        bar.set_postfix_str(f"{tasks[i].world} {tasks[i].part}", refresh=False)
+                        bar.update(1)
     finally:
-        if executor is not None:
-            executor.shutdown(wait=True)
         if bar is not None:
             bar.close()
-        if client is not None:
-            client.close()
     return results  # type: ignore[return-value]
 
 

@@ -17,7 +17,6 @@ import concurrent.futures
 import dataclasses
 import hashlib
 import logging
-import os
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from glassmap.types import Odometry, Scan
 from runtime.config import RuntimeConfig
 from runtime.readers import ReplayInputError, iter_messages, read_metadata
 from runtime.recorder import read_mcap
+from runtime.parallel import job_executor
 
 log = logging.getLogger(__name__)
 
@@ -298,32 +298,20 @@ def replay_many(jobs: Iterable[ReplayJob], *, workers: int | None = None, dask_a
         from tqdm import tqdm
 
         bar = tqdm(total=len(jobs), desc="replay jobs", unit="job")
-    if dask_address:
-        try:
-            from distributed import Client
-        except ImportError:
-            raise RuntimeError("a Dask cluster needs the 'distributed' package: pip install 'glassmap[dask]'") from None
-        client = Client(dask_address)
-        executor: concurrent.futures.Executor = client.get_executor()
-    else:
-        n = workers or os.cpu_count() or 1
-        executor = concurrent.futures.ProcessPoolExecutor(max_workers=min(n, max(1, len(jobs))))
     try:
-        futures = {executor.submit(_run_job, j): i for i, j in enumerate(jobs)}
-        for fut in concurrent.futures.as_completed(futures):
-            i = futures[fut]
-            try:
-                results[i] = fut.result()
-            except Exception as exc:  # reported per job
-                results[i] = exc
-            if bar is not None:
-                bar.update(1)
+        with job_executor(len(jobs), workers, dask_address) as executor:
+            futures = {executor.submit(_run_job, j): i for i, j in enumerate(jobs)}
+            for fut in concurrent.futures.as_completed(futures):
+                i = futures[fut]
+                try:
+                    results[i] = fut.result()
+                except Exception as exc:  # reported per job
+                    results[i] = exc
+                if bar is not None:
+                    bar.update(1)
     finally:
-        executor.shutdown(wait=True)
         if bar is not None:
             bar.close()
-        if dask_address:
-            client.close()
     return results
 
 

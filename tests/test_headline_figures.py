@@ -7,7 +7,6 @@ failure means a change made a headline figure worse, not that the machine was bu
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]

@@ -14,15 +14,13 @@ import asyncio
 import json
 import math
 import time
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from drivers.capture import Capture
 from drivers.capture import CaptureRecorder
 from drivers.hokuyo.emulator import HokuyoEmulator, room_scan_source
-from drivers.hokuyo.scip import InfoReply, Reply, ScanReply, ScipParser
+from drivers.hokuyo.scip import InfoReply, ScanReply, ScipParser
 from drivers.pioneer.emulator import HOSTBAUD_SPEEDS, PioneerEmulator
 from drivers.pioneer.packets import SIP_IDS, Cmd, PacketParser, parse_int_arg
 from drivers.pioneer.sip import decode_config, decode_sip

@@ -14,27 +14,13 @@ import pytest
 
 from drivers.capture import Capture
 from drivers.pioneer.client import PioneerClient
-from drivers.pioneer.odometry import OdometryTracker, model_for
-from drivers.pioneer.packets import SIP_IDS, PacketParser
-from drivers.pioneer.sip import decode_sip, decode_sync2
+from drivers.pioneer.packets import PacketParser
 from tests.fakes.replay import replay_over_pty
 from tests.helpers import eventually
+from tests.fakes.pioneer_captures import decode_rx
 from tests.pioneer.make_captures import SESSIONS
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def offline(capture: Capture):
-    """Identity, number of SIPs after the handshake and the final odometry, decoded from the rx bytes alone."""
-    info, tracker, n, odom = None, None, 0, None
-    for pkt in PacketParser().feed(capture.rx_bytes()):
-        if pkt.pid == 2 and pkt.payload:
-            info = decode_sync2(pkt.payload)
-            tracker = OdometryTracker(model_for(info.subclass))
-        elif pkt.pid in SIP_IDS and tracker is not None:
-            odom = tracker.update(decode_sip(pkt.pid, pkt.payload), 0.0)
-            n += 1
-    return info, n, odom
 
 
 def handshake_tx(capture: Capture) -> list[tuple[int, bytes]]:
@@ -51,7 +37,7 @@ def handshake_tx(capture: Capture) -> list[tuple[int, bytes]]:
 async def test_replayed_capture_gives_the_recorded_odometry(session):
     cap = Capture.load(session.path)
     assert cap.device == "pioneer" and cap.note == session.note
-    info, n_sips, final = offline(cap)
+    info, n_sips, final = decode_rx(cap)
     assert info is not None and info.subclass == session.subclass and n_sips >= session.sips
     path, replayer, endpoint, task = await replay_over_pty(cap)
     try:

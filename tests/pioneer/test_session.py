@@ -11,11 +11,9 @@ import pytest
 
 from drivers.capture import Capture, CaptureRecorder
 from drivers.pioneer.client import PioneerClient
-from drivers.pioneer.odometry import OdometryTracker, model_for
-from drivers.pioneer.packets import SIP_IDS, PacketParser
-from drivers.pioneer.sip import decode_sip, decode_sync2
 from runtime.raw_replay import PioneerReplay
 from tests.pioneer.conftest import SCALE, fast_settings
+from tests.fakes.pioneer_captures import decode_rx
 from tests.pioneer.make_captures import SESSIONS
 
 pytestmark = pytest.mark.timeout(60)
@@ -29,19 +27,6 @@ def replay(capture: Capture, device) -> list:
         else:
             out.extend(device.rx(c.t, c.data))
     return out
-
-
-def rx_only(capture: Capture):
-    """Identity, SIPs after the robot's SYNC2 reply and the final odometry, from the rx bytes alone."""
-    info, tracker, n, odom = None, None, 0, None
-    for pkt in PacketParser().feed(capture.rx_bytes()):
-        if pkt.pid == 2 and pkt.payload:
-            info = decode_sync2(pkt.payload)
-            tracker = OdometryTracker(model_for(info.subclass))
-        elif pkt.pid in SIP_IDS and tracker is not None:
-            odom = tracker.update(decode_sip(pkt.pid, pkt.payload), 0.0)
-            n += 1
-    return info, n, odom
 
 
 async def test_raw_replay_of_a_driving_session_gives_the_live_odometry(emulator_factory):
@@ -76,7 +61,7 @@ async def test_raw_replay_of_a_driving_session_gives_the_live_odometry(emulator_
 @pytest.mark.parametrize("session", SESSIONS, ids=[s.name for s in SESSIONS])
 def test_raw_replay_of_the_committed_captures_skips_the_handshake_like_the_client(session):
     cap = Capture.load(session.path)
-    info, n_sips, final = rx_only(cap)
+    info, n_sips, final = decode_rx(cap)
     rep = PioneerReplay(tx_chunks=[c.data for c in cap.chunks if c.direction == "tx"])
     odoms = replay(cap, rep)
     assert rep.session.info == info

@@ -18,7 +18,7 @@ from rosbags.highlevel import AnyReader
 
 from runtime import messages as M
 from runtime.output_args import parse_size
-from runtime.recorder import LATCHED_TOPICS, McapRecorder, RecorderError, read_mcap, recover_mcap
+from runtime.recorder import LATCHED_TOPICS, McapRecorder, read_mcap, recover_mcap
 from runtime.sink import RecordingSink
 from tests.runtime.factories import make_odom, make_scan
 
