@@ -108,7 +108,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_world(d)
     d.add_argument("--route", default=None, help="route of the world (default: its default route)")
-    d.add_argument("--speed", type=float, default=2.0, help="run the emulated devices this many times faster "
+    d.add_argument("--speed", type=float, default=1.0, help="run the emulated devices this many times faster "
                    "than real time (scans come at 40 x speed Hz; scans the processing cannot keep up with are "
                    "dropped and counted)")
     d.add_argument("--duration", type=float, default=None, metavar="S",

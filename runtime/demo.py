@@ -33,7 +33,7 @@ class DemoOptions:
 
     world: str = "office"
     route: str | None = None
-    speed: float = 2.0
+    speed: float = 1.0
     duration: float | None = None
     out_dir: str = "out/demo"
     record: bool = True
