@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.interop, pytest.mark.timeout(300)]
 def peer_dir(env: str) -> Path:
     value = os.environ.get(env)
     if not value:
-        pytest.skip(f"set {env} to run this peer live")
+        pytest.skip(reason=f"set {env} to run this peer live")
     path = Path(value)
     if not path.is_dir():
         pytest.fail(f"{env}={value} is not a directory")

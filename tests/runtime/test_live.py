@@ -31,9 +31,9 @@ pytestmark = pytest.mark.timeout(120)
 
 def _need_client() -> None:
     if shutil.which("node") is None:
-        pytest.skip("node is not installed (the live view is checked with Foxglove's Node client)")
+        pytest.skip(reason="node is not installed (the live view is checked with Foxglove's Node client)")
     if not (CLIENT / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
-        pytest.skip("the Node test client is not installed: scripts/dev.sh setup (npm ci in tests/runtime/live_client)")
+        pytest.skip(reason="the Node test client is not installed: scripts/dev.sh setup (npm ci in tests/runtime/live_client)")
 
 
 def _client(url: str, *args: str) -> subprocess.Popen:
