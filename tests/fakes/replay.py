@@ -85,3 +85,15 @@ async def replay_over_tcp(capture: Capture, **kwargs) -> tuple[str, CaptureRepla
     server = await serve_tcp(replayer)
     port = server.sockets[0].getsockname()[1]
     return f"tcp://127.0.0.1:{port}", replayer, server
+
+
+def feed_capture(capture: Capture, session) -> list:
+    """Feed a capture to a receive session in recorded order (``tx`` what was sent, ``rx`` what came back, each
+    with its recorded host time); returns everything the ``rx`` calls yielded."""
+    out = []
+    for c in capture.chunks:
+        if c.direction == "tx":
+            session.tx(c.t, c.data)
+        else:
+            out.extend(session.rx(c.t, c.data))
+    return out

@@ -4,7 +4,6 @@ Give the URL with ``--laser-url`` or ``GLASSMAP_LASER_URL``, e.g.
 ``GLASSMAP_LASER_URL=tcp://192.168.0.10:10940 .venv/bin/python -m pytest -m hardware tests/hokuyo``.
 """
 
-import os
 
 import numpy as np
 import pytest
@@ -12,14 +11,6 @@ import pytest
 from drivers.hokuyo.client import HokuyoClient
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(60)]
-
-
-@pytest.fixture
-def laser_url(request):
-    url = request.config.getoption("--laser-url", default=None) or os.environ.get("GLASSMAP_LASER_URL")
-    if not url:
-        pytest.skip(reason="no laser: pass --laser-url or set GLASSMAP_LASER_URL")
-    return url
 
 
 async def test_real_sensor_streams_consistent_scans(laser_url):

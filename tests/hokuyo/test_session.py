@@ -6,22 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.capture import Capture, CaptureRecorder
+from drivers.capture import CaptureRecorder
 from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
 from drivers.hokuyo.emulator import Faults, HokuyoEmulator, room_scan_source
 from runtime.raw_replay import HokuyoReplay
+from tests.fakes.replay import feed_capture
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def replay(capture: Capture, device) -> list:
-    out = []
-    for c in capture.chunks:
-        if c.direction == "tx":
-            device.tx(c.t, c.data)
-        else:
-            out.extend(device.rx(c.t, c.data))
-    return out
 
 
 def same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
@@ -44,7 +35,7 @@ async def test_raw_replay_of_a_multi_echo_session_gives_the_live_scans_echoes_in
     assert stats.reconnects == 1 and stats.corrupted > 0 and stats.garbage_bytes > 0
 
     rep = HokuyoReplay()
-    replayed = replay(rec.capture, rep)[:len(live)]
+    replayed = feed_capture(rec.capture, rep)[:len(live)]
     assert rep.session.links == 2 + 1  # the session's own first link, then the reconnection and the close
     assert [s.seq for s in replayed] == [s.seq for s in live]
     assert [s.sensor_stamp for s in replayed] == [s.sensor_stamp for s in live]

@@ -15,14 +15,6 @@ from drivers.pioneer.odometry import MODELS
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(60)]
 
 
-@pytest.fixture
-def base_url(request):
-    url = request.config.getoption("--base-url", default=None) or os.environ.get("GLASSMAP_BASE_URL")
-    if not url:
-        pytest.skip(reason="no robot: pass --base-url or set GLASSMAP_BASE_URL")
-    return url
-
-
 async def test_real_robot_handshake_and_sips(base_url):
     async with PioneerClient.connect(base_url) as base:
         assert base.info.robot_class.lower() == "pioneer" and base.model.subclass in MODELS

@@ -15,18 +15,9 @@ from runtime.raw_replay import PioneerReplay
 from tests.pioneer.conftest import SCALE, fast_settings
 from tests.fakes.pioneer_captures import decode_rx
 from tests.pioneer.make_captures import SESSIONS
+from tests.fakes.replay import feed_capture
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def replay(capture: Capture, device) -> list:
-    out = []
-    for c in capture.chunks:
-        if c.direction == "tx":
-            device.tx(c.t, c.data)
-        else:
-            out.extend(device.rx(c.t, c.data))
-    return out
 
 
 async def test_raw_replay_of_a_driving_session_gives_the_live_odometry(emulator_factory):
@@ -48,7 +39,7 @@ async def test_raw_replay_of_a_driving_session_gives_the_live_odometry(emulator_
     assert base.stats.still_open_recoveries == 1  # the robot was still open at the reconnection: its SIPs
     # before the CLOSE belong to the handshake, not to the odometry
     rep = PioneerReplay(time_scale=SCALE, tx_chunks=[c.data for c in rec.capture.chunks if c.direction == "tx"])
-    odoms = replay(rec.capture, rep)
+    odoms = feed_capture(rec.capture, rep)
     assert rep.session.links == 2 and rep.session.stats.sips >= len(live)
     assert len(odoms) == base.stats.sips  # live: the callback was added after the first SIP(s)
     odoms = odoms[-len(live):]
@@ -63,7 +54,7 @@ def test_raw_replay_of_the_committed_captures_skips_the_handshake_like_the_clien
     cap = Capture.load(session.path)
     info, n_sips, final = decode_rx(cap)
     rep = PioneerReplay(tx_chunks=[c.data for c in cap.chunks if c.direction == "tx"])
-    odoms = replay(cap, rep)
+    odoms = feed_capture(cap, rep)
     assert rep.session.info == info
     assert len(odoms) == n_sips  # SIPs of a still-open robot before the handshake are not odometry
     assert (odoms[-1].x, odoms[-1].y, odoms[-1].yaw) == pytest.approx((final.x, final.y, final.yaw), abs=1e-12)

@@ -312,14 +312,10 @@ def test_replays_on_a_dask_cluster(demo):
 
 
 @pytest.mark.hardware
-def test_real_devices_short_run(tmp_path, request):
+def test_real_devices_short_run(tmp_path, laser_url, base_url):
     """Against the real robot (opt-in): --laser-url / --base-url (or GLASSMAP_LASER_URL / GLASSMAP_BASE_URL)
     name the devices. The robot is not moved (motors stay disabled)."""
-    laser = request.config.getoption("--laser-url") or os.environ.get("GLASSMAP_LASER_URL")
-    base = request.config.getoption("--base-url") or os.environ.get("GLASSMAP_BASE_URL")
-    if not laser or not base:
-        pytest.skip(reason="pass --laser-url and --base-url (or set GLASSMAP_LASER_URL and GLASSMAP_BASE_URL)")
-    cfg = RuntimeConfig(laser_url=laser, base_url=base)
+    cfg = RuntimeConfig(laser_url=laser_url, base_url=base_url)
     cfg.output.out_dir = str(tmp_path)
     cfg.output.record = str(tmp_path / "real.mcap")
     summary = asyncio.run(Runtime(cfg).run(duration=5.0))
