@@ -5,6 +5,8 @@
 2. Replay of that recording as fast as possible, from the decoded messages and from the raw bytes through
    the drivers' decoders: scans/s, times real time, per-stage time per scan.
 3. Peak resident memory (this process and the device process).
+``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
+says how many.
 Targets on the development machine: replay >= 4x real time (160 scans/s), p99 latency <= 25 ms at 40 Hz.
 The per-stage medians are over all scans: scan matching and the occupancy update run on key scans only
 (motion filter, ``mapping.keyframe_*``), so their p90 / p99 show the cost of a key scan.
@@ -45,10 +47,20 @@ def _stage_lines(stages: dict, prefix: str) -> list[str]:
 
 
 def run_bench(world: str = "office", duration: float = 20.0, recording: str | None = None,
-              out_dir: str = "out/bench") -> str:
+              out_dir: str = "out/bench", load: int = 0) -> str:
+    from runtime.load import BusyProcesses
+
+    with BusyProcesses(load) as busy:
+        lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it")
+        if busy.running != load:
+            lines.append(f"warning: only {busy.running} of the {load} busy processes were still running at the end")
+    return "\n".join(lines)
+
+
+def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str) -> list[str]:
     from runtime.replay import replay_file
 
-    lines = []
+    lines = [f"load: {beside} (glassmap bench --load N)"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if recording is None:
@@ -58,7 +70,7 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
                                                progress=True)))
         s = res.summary
         recording = res.recording
-        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time): {s.stages.summary()}")
+        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time, {beside}): {s.stages.summary()}")
         lines.append(f"  latency scan bytes in -> maps updated: {_ms(res.latency)}")
         skip = int(round(STARTUP_S * 40))
         if len(res.latency) > 2 * skip:
@@ -68,7 +80,7 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
     for source in ("messages", "raw"):
         r = replay_file(recording, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
                         as_recorded=False)
-        lines.append(f"replay from {source}: {r.scans} scans in {r.wall_time:.2f} s = {r.scans_per_second:.0f} "
+        lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = {r.scans_per_second:.0f} "
                      f"scans/s = {r.speedup:.1f}x real time")
         lines += _stage_lines(r.stages, "")
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -81,4 +93,4 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
                      "every figure above)")
     except OSError:
         pass
-    return "\n".join(lines)
+    return lines

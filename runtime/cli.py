@@ -165,6 +165,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--duration", type=float, default=20.0, help="emulated seconds of the live run")
     b.add_argument("--recording", default=None, help="replay this recording instead of recording a new one "
                    "(no live latency figures then)")
+    b.add_argument("--load", type=_non_negative_int, default=0, metavar="N",
+                   help="run N CPU-bound processes beside the benchmark (the figures then say so): loaded figures "
+                   "that anyone can reproduce")
     add_out(b, "out/bench")
     b.set_defaults(func=cmd_bench)
 
@@ -340,10 +343,21 @@ def cmd_replay(args) -> int:
     return 1 if failed else 0
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {n}")
+    return n
+
+
 def cmd_bench(args) -> int:
     from runtime.bench import run_bench
 
-    print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out))
+    print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
+                    load=args.load))
     return 0
 
 
