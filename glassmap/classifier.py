@@ -1,21 +1,21 @@
 """Per-beam glass classifiers (docs/method.md section 2): features of a beam -> p(glass).
 
-A torch MLP with 4 fully connected layers and a softmax over {not glass, glass} (class 1 = glass). Two
+An MLP (trained with torch, run with numpy) with 4 fully connected layers and a softmax over {not glass, glass} (class 1 = glass). Two
 named models differ only in their inputs (``glassmap.glass_features``): ``baseline`` is the paper's
 f(intensity, distance, incidence); ``context`` adds the beam's echoes, its neighbours along the scan and
 its place on its line segment. Inputs are standardised with the training set's mean and standard
 deviation. A temperature (fitted on validation worlds) divides the logits before the softmax so that
 outputs behave as probabilities for the Bayesian update.
 
-The trained weights ship in ``glassmap/models/glass_<model>.pt`` (state dict) with ``glass_<model>.json``
-(model name, normalisation, temperature, architecture and the training report);
+The trained weights ship in ``glassmap/models/glass_<model>.npz`` (numpy arrays, read at run time) and
+``glass_<model>.pt`` (the same as a torch state dict) with ``glass_<model>.json`` (model name, normalisation,
+temperature, architecture and the training report);
 :meth:`GlassClassifier.load_default` loads them from the package, without network.
 """
 
 from __future__ import annotations
 
 import json
-import threading
 from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
-_THREADS_SET = threading.local()  # per thread: torch already set to one intra-op thread
 DEFAULT_MODEL = "context"
 FALLBACK_MODEL = "baseline"
 
@@ -90,52 +89,101 @@ def build_mlp(hidden: tuple[int, int, int] = (32, 32, 16), n_in: int = 3):
 
 
 class GlassClassifier:
-    """Trained glass classifier. ``predict`` runs one batched torch call per scan."""
+    """Trained glass classifier. Inference is numpy (one BLAS product per layer for a whole scan), so the
+    runtime does not load torch; :attr:`model` gives the torch module for training and fine-tuning.
 
-    def __init__(self, model, meta: ClassifierMeta) -> None:
-        import torch
+    layers: per linear layer its weight (out, in) and bias (out,), float32, in the order of
+    :func:`build_mlp` (ReLU between layers)."""
 
-        self.torch = torch
-        self.model = model.eval()
-        with torch.no_grad():
-            # weight decay leaves some dead weights at denormal magnitudes (~1e-40), which makes a
-            # 1081 x 32 x 32 matmul 10-20x slower on x86; they contribute nothing, so zero them
-            for prm in self.model.parameters():
-                prm[prm.abs() < 1e-30] = 0.0
+    def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]], meta: ClassifierMeta) -> None:
         self.meta = meta
+        self._layers: list[tuple[np.ndarray, np.ndarray]] = []
+        for w, b in layers:
+            w = np.array(w, dtype=np.float32)
+            # weight decay leaves some dead weights at denormal magnitudes (~1e-40), which makes the
+            # products 10-20x slower on x86; they contribute nothing, so zero them
+            w[np.abs(w) < 1e-30] = 0.0
+            b = np.array(b, dtype=np.float32)
+            b[np.abs(b) < 1e-30] = 0.0
+            self._layers.append((np.ascontiguousarray(w.T), b))
         self._mean = np.asarray(meta.mean, dtype=np.float32)
         self._inv_std = (1.0 / np.asarray(meta.std, dtype=np.float32)).astype(np.float32)
         self._inv_t = float(1.0 / meta.temperature)
 
     @classmethod
-    def load(cls, stem: str | Path) -> "GlassClassifier":
-        """Load ``stem.pt`` (state dict) and ``stem.json`` (metadata)."""
+    def from_torch(cls, model, meta: ClassifierMeta) -> "GlassClassifier":
+        """From a torch module made by :func:`build_mlp` (e.g. just trained)."""
+        import torch.nn as nn
+
+        lin = [m for m in model if isinstance(m, nn.Linear)]
+        return cls([(m.weight.detach().cpu().numpy(), m.bias.detach().cpu().numpy()) for m in lin], meta)
+
+    @property
+    def layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Copies of the weights (out, in) and biases (out,) per linear layer."""
+        return [(wt.T.copy(), b.copy()) for wt, b in self._layers]
+
+    @property
+    def model(self):
+        """A torch module (:func:`build_mlp`) holding these weights, in eval mode (imports torch)."""
         import torch
 
+        mlp = build_mlp(self.meta.hidden, len(self.meta.feature_names))
+        lin = [m for m in mlp if isinstance(m, torch.nn.Linear)]
+        with torch.no_grad():
+            for m, (w, b) in zip(lin, self.layers):
+                m.weight.copy_(torch.from_numpy(w))
+                m.bias.copy_(torch.from_numpy(b))
+        return mlp.eval()
+
+    @classmethod
+    def load(cls, stem: str | Path) -> "GlassClassifier":
+        """Load ``stem.json`` (metadata) and the weights: ``stem.npz`` (numpy, no torch needed) if present,
+        else ``stem.pt`` (torch state dict)."""
         stem = Path(stem)
-        pt, js = stem.with_suffix(".pt"), stem.with_suffix(".json")
-        for p in (pt, js):
-            if not p.is_file():
-                raise ClassifierError(f"classifier file {p} not found; run `glassmap glass train` to create it")
+        npz, pt, js = stem.with_suffix(".npz"), stem.with_suffix(".pt"), stem.with_suffix(".json")
+        if not js.is_file() or not (npz.is_file() or pt.is_file()):
+            missing = js if not js.is_file() else pt
+            raise ClassifierError(f"classifier file {missing} not found; run `glassmap glass train` to create it")
         meta = ClassifierMeta.from_json(js.read_text())
         from .glass_features import FEATURES
 
         if tuple(FEATURES.get(meta.model, ())) != tuple(meta.feature_names):
             raise ClassifierError(f"{js}: model {meta.model!r} with features {list(meta.feature_names)} is not "
                                   f"a known model of this version (models: {', '.join(FEATURES)})")
-        model = build_mlp(meta.hidden, len(meta.feature_names))
-        try:
-            model.load_state_dict(torch.load(pt, map_location="cpu", weights_only=True))
-        except (RuntimeError, KeyError) as e:
-            raise ClassifierError(f"weights {pt} do not match the architecture in {js}: {e}") from e
-        return cls(model, meta)
+        sizes = [len(meta.feature_names), *meta.hidden, 2]
+        if npz.is_file():
+            with np.load(npz) as z:
+                layers = [(z[f"w{j}"], z[f"b{j}"]) for j in range(len(sizes) - 1) if f"w{j}" in z and f"b{j}" in z]
+            src = npz
+        else:
+            import torch
+
+            try:
+                state = torch.load(pt, map_location="cpu", weights_only=True)
+                layers = [(state[f"{2 * j}.weight"].numpy(), state[f"{2 * j}.bias"].numpy())
+                          for j in range(len(sizes) - 1)]
+            except (RuntimeError, KeyError) as e:
+                raise ClassifierError(f"weights {pt} do not match the architecture in {js}: {e}") from e
+            src = pt
+        want = [((o, i), (o,)) for i, o in zip(sizes[:-1], sizes[1:])]
+        if [(w.shape, b.shape) for w, b in layers] != want:
+            raise ClassifierError(f"weights {src} do not match the architecture in {js}: layers "
+                                  f"{[(w.shape, b.shape) for w, b in layers]}, expected {want}")
+        return cls(layers, meta)
 
     @classmethod
     def load_default(cls, model: str = DEFAULT_MODEL) -> "GlassClassifier":
-        """The weights shipped inside the package for ``model`` (glassmap/models/glass_<model>.pt)."""
+        """The weights shipped inside the package for ``model`` (glassmap/models/glass_<model>.npz)."""
         shipped_stem(model)  # validates the name
         ref = resources.files("glassmap") / "models" / f"glass_{model}"
         return cls.load(Path(str(ref)))
+
+    def save_weights(self, path: str | Path) -> Path:
+        """Write the weights as ``.npz`` (w0, b0, w1, b1, ...: weight (out, in), bias (out,) per layer)."""
+        path = Path(path)
+        np.savez(path, **{f"{k}{j}": a for j, (w, b) in enumerate(self.layers) for k, a in (("w", w), ("b", b))})
+        return path
 
     @property
     def model_name(self) -> str:
@@ -146,24 +194,17 @@ class GlassClassifier:
         """The model reads the beams' further echoes (multi-echo scans)."""
         return "echo_count" in self.meta.feature_names
 
-    def _one_thread_here(self) -> None:
-        """Run torch on one intra-op thread in the calling thread. ``torch.set_num_threads`` reaches only the
-        OpenMP team of the thread that calls it: from any other thread (the runtime's processing executor)
-        a 1081-beam batch would run on a team of one thread per core, which is ~80x slower for a matrix
-        this small (8.6 ms instead of 0.1 ms per scan on the 2-core development machine, worse when the
-        other core is busy). Done once per thread."""
-        if not getattr(_THREADS_SET, "done", False):
-            self.torch.set_num_threads(1)
-            _THREADS_SET.done = True
-
     def logits(self, x: np.ndarray) -> np.ndarray:
-        """Temperature-scaled logits (n, 2) for raw features ``x`` (n, 3) from :func:`features`."""
-        torch = self.torch
-        self._one_thread_here()
-        z = (x - self._mean) * self._inv_std
-        with torch.inference_mode():
-            out = self.model(torch.from_numpy(np.ascontiguousarray(z, dtype=np.float32)))
-        return out.numpy() * self._inv_t
+        """Temperature-scaled logits (n, 2) float32 for raw features ``x`` (n, k) of this model."""
+        h = (np.asarray(x, dtype=np.float32) - self._mean) * self._inv_std
+        last = len(self._layers) - 1
+        for j, (wt, b) in enumerate(self._layers):
+            h = h @ wt
+            h += b
+            if j < last:
+                np.maximum(h, 0.0, out=h)
+        h *= np.float32(self._inv_t)
+        return h
 
     def predict(self, intensity: np.ndarray, distance: np.ndarray, incidence: np.ndarray) -> np.ndarray:
         """p(glass) (n,) float64 of the baseline model for beams with intensity (sensor units), distance (m),

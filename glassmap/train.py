@@ -266,7 +266,7 @@ def train_classifier(train: BeamSet, cfg: TrainConfig, val: BeamSet | None = Non
                           temperature=temperature, feature_names=FEATURES[cfg.model], model=cfg.model)
     if init is not None:
         meta = replace(meta, hidden=tuple(init.meta.hidden))
-    clf = GlassClassifier(model, meta)
+    clf = GlassClassifier.from_torch(model, meta)
     pv = clf.predict_beams(val.x)
     info = {"model": cfg.model, "fine_tuned": init is not None, "n_train": len(train), "n_val": len(val),
             "glass_share_train": float(train.y.mean()), "temperature": temperature,
@@ -275,13 +275,15 @@ def train_classifier(train: BeamSet, cfg: TrainConfig, val: BeamSet | None = Non
 
 
 def save_classifier(clf: GlassClassifier, stem: str | Path) -> tuple[Path, Path]:
-    """Write ``stem.pt`` (state dict) and ``stem.json`` (model, normalisation, temperature, report)."""
+    """Write ``stem.pt`` (state dict), ``stem.npz`` (the same weights for numpy inference, what
+    :meth:`GlassClassifier.load` reads) and ``stem.json`` (model, normalisation, temperature, report)."""
     import torch
 
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
     pt, js = stem.with_suffix(".pt"), stem.with_suffix(".json")
     torch.save(clf.model.state_dict(), pt)
+    clf.save_weights(stem.with_suffix(".npz"))
     js.write_text(clf.meta.to_json() + "\n")
     return pt, js
 
@@ -309,7 +311,7 @@ def run_training(cfg: TrainConfig = TrainConfig(), out_stem: str | Path | None =
     log(f"{len(train)} training beams ({int(train.y.sum())} glass), {len(val)} validation beams "
         f"({int(val.y.sum())} glass) in {time.perf_counter() - t0:.1f} s")
     clf, info = train_classifier(train, cfg, val=val, init=init, log=log)
-    raw = GlassClassifier(clf.model, replace(clf.meta, temperature=1.0))
+    raw = GlassClassifier(clf.layers, replace(clf.meta, temperature=1.0))
     report = {
         "config": {kk: (list(v) if isinstance(v, tuple) else v) for kk, v in asdict(cfg).items()
                    if kk not in ("train_seeds", "val_seeds")},

@@ -35,6 +35,7 @@ from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder, RecorderError
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
+from runtime.tuning import freeze_startup
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +190,7 @@ class Runtime:
                 # before the devices connect, so that the first scans are not delayed by start-up work
                 await self.stage.call(self.processor.warm_up)
                 await self.map_worker.start()
+                freeze_startup()  # start-up objects out of the garbage collector's way (runtime.tuning)
                 await self._connect()
                 tasks = [asyncio.create_task(self._laser_task(), name="laser"),
                          asyncio.create_task(self.stage.run(), name="processing"),

@@ -5,6 +5,7 @@
 2. Replay of that recording as fast as possible, from the decoded messages and from the raw bytes through
    the drivers' decoders: scans/s, times real time, per-stage time per scan.
 3. Peak resident memory (this process and the device process).
+``stages``: also the CPU time of each stage of the processing (:mod:`runtime.stageprof`).
 ``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
 says how many.
 Targets on the development machine: replay >= 4x real time (160 scans/s), p99 latency <= 25 ms at 40 Hz.
@@ -47,17 +48,18 @@ def _stage_lines(stages: dict, prefix: str) -> list[str]:
 
 
 def run_bench(world: str = "office", duration: float = 20.0, recording: str | None = None,
-              out_dir: str = "out/bench", load: int = 0) -> str:
+              out_dir: str = "out/bench", load: int = 0, stages: bool = False) -> str:
     from runtime.load import BusyProcesses
 
     with BusyProcesses(load) as busy:
-        lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it")
+        lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it",
+                     stages)
         if busy.running != load:
             lines.append(f"warning: only {busy.running} of the {load} busy processes were still running at the end")
     return "\n".join(lines)
 
 
-def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str) -> list[str]:
+def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool) -> list[str]:
     from runtime.replay import replay_file
 
     lines = [f"load: {beside} (glassmap bench --load N)"]
@@ -83,6 +85,12 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = {r.scans_per_second:.0f} "
                      f"scans/s = {r.speedup:.1f}x real time")
         lines += _stage_lines(r.stages, "")
+    if stages:
+        from runtime.stageprof import stage_profile
+
+        t = stage_profile(str(recording))
+        lines.append(f"CPU time per stage, replay of the messages ({t.scans} scans, {beside}; runtime/stageprof.py):")
+        lines.append(t.table())
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     lines.append(f"peak memory: runtime {own:.0f} MiB; largest child process (emulated devices, map worker) {kids:.0f} MiB")

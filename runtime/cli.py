@@ -168,6 +168,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--load", type=_non_negative_int, default=0, metavar="N",
                    help="run N CPU-bound processes beside the benchmark (the figures then say so): loaded figures "
                    "that anyone can reproduce")
+    b.add_argument("--stages", action="store_true", help="also replay the recording once more with every stage of "
+                   "the processing timed (CPU time of the thread: holds on a busy machine) and print the table")
     add_out(b, "out/bench")
     b.set_defaults(func=cmd_bench)
 
@@ -357,7 +359,7 @@ def cmd_bench(args) -> int:
     from runtime.bench import run_bench
 
     print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
-                    load=args.load))
+                    load=args.load, stages=args.stages))
     return 0
 
 

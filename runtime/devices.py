@@ -19,12 +19,14 @@ import argparse
 import asyncio
 import json
 import math
+import os
 import signal
 import sys
 from dataclasses import dataclass
 
 import numpy as np
 
+from runtime.tuning import ONE_THREAD_ENV
 
 class SeenCells:
     """Blueprint cells hit by the simulated laser's returned beams (true end points from the true pose), on
@@ -156,7 +158,7 @@ class DeviceProcess:
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "runtime.devices", "--world", world, "--speed", str(speed), "--seed", str(seed),
             *(["--seen", seen_path] if seen_path else []), *(["--truth", truth_path] if truth_path else []),
-            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, env={**os.environ, **ONE_THREAD_ENV},
             start_new_session=True)  # Ctrl-C in the terminal reaches the runtime only, as with real devices
         try:
             line = await asyncio.wait_for(proc.stdout.readline(), 60.0)

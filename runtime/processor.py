@@ -14,6 +14,7 @@ import numpy as np
 from glassmap.types import Odometry, Scan
 from runtime.config import MappingConfig
 from runtime.pipeline import ScanResult
+from runtime.tuning import one_blas_thread
 
 
 class MappingProcessor:
@@ -52,6 +53,7 @@ class MappingProcessor:
         self.mapper_integrates = mapping.occupancy_update == "mapper"
         self.latest_odom: Odometry | None = None
         self.scans = 0
+        one_blas_thread()  # small products in one processing thread (runtime.tuning)
 
     @property
     def wants_echoes(self) -> bool:

@@ -29,6 +29,7 @@ from runtime.config import RuntimeConfig
 from runtime.readers import ReplayInputError, iter_messages, read_metadata
 from runtime.recorder import read_mcap
 from runtime.parallel import job_executor
+from runtime.tuning import freeze_startup
 
 log = logging.getLogger(__name__)
 
@@ -200,6 +201,8 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     first = last = None
     unprocessed = 0
     pub = _live_publisher(live, path, cfg) if live is not None else None
+    proc.warm_up()
+    freeze_startup()
     t0 = time.perf_counter()
     try:
         for item in prefetch(iter_source(path, source)):

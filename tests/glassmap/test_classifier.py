@@ -97,3 +97,60 @@ def test_metadata_must_name_a_known_model(tmp_path):
     (tmp_path / "m.json").write_text(json.dumps(meta))
     with pytest.raises(ClassifierError, match="not a known model"):
         GlassClassifier.load(tmp_path / "m")
+
+
+@pytest.mark.parametrize("model", ["context", "baseline"])
+def test_numpy_inference_matches_the_torch_network(model):
+    """The shipped .npz holds the .pt's weights, and the numpy network gives the torch network's p(glass)
+    up to float32 rounding (different summation order in the products)."""
+    import torch
+
+    from glassmap.classifier import shipped_stem
+
+    stem = shipped_stem(model)
+    from_npz = GlassClassifier.load(stem)
+    state = torch.load(stem.with_suffix(".pt"), map_location="cpu", weights_only=True)
+    for j, (w, b) in enumerate(from_npz.layers):
+        tw, tb = state[f"{2 * j}.weight"].numpy().copy(), state[f"{2 * j}.bias"].numpy().copy()
+        tw[np.abs(tw) < 1e-30] = 0.0  # denormals zeroed at load
+        tb[np.abs(tb) < 1e-30] = 0.0
+        np.testing.assert_array_equal(w, tw)
+        np.testing.assert_array_equal(b, tb)
+    meta = from_npz.meta
+    x = (np.random.default_rng(3).normal(size=(4000, len(meta.feature_names))) * meta.std + meta.mean).astype(np.float32)
+    with torch.inference_mode():
+        z = torch.from_numpy(((x - np.float32(meta.mean)) / np.float32(meta.std)).astype(np.float32))
+        lg = from_npz.model(z).numpy().astype(np.float64) / meta.temperature
+    p_torch = 1.0 / (1.0 + np.exp(-(lg[:, 1] - lg[:, 0])))
+    np.testing.assert_allclose(from_npz.predict_features(x), p_torch, rtol=0, atol=1e-5)
+
+
+def test_loads_from_a_torch_state_dict_alone_and_refuses_wrong_shapes(tmp_path):
+    from glassmap.classifier import shipped_stem
+
+    src = shipped_stem("baseline")
+    shutil.copy(src.with_suffix(".pt"), tmp_path / "m.pt")
+    shutil.copy(src.with_suffix(".json"), tmp_path / "m.json")
+    x = np.array([[8.0, 2.0, 0.1], [6.0, 5.0, 0.9]], dtype=np.float32)
+    ref = GlassClassifier.load(src).predict_features(x)
+    np.testing.assert_array_equal(GlassClassifier.load(tmp_path / "m").predict_features(x), ref)
+    clf = GlassClassifier.load(src)
+    layers = clf.layers
+    layers[1] = (layers[1][0][:, :5], layers[1][1])
+    np.savez(tmp_path / "m.npz", **{f"{k}{j}": a for j, (w, b) in enumerate(layers) for k, a in (("w", w), ("b", b))})
+    with pytest.raises(ClassifierError, match="do not match the architecture"):
+        GlassClassifier.load(tmp_path / "m")
+
+
+def test_the_runtime_path_does_not_load_torch():
+    """Loading and running the shipped classifier needs numpy only (torch alone is ~230 MiB resident)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\n"
+            "from glassmap.classifier import GlassClassifier\n"
+            "c = GlassClassifier.load_default()\n"
+            "c.predict_features(np.zeros((3, len(c.meta.feature_names)), np.float32))\n"
+            "print('torch' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

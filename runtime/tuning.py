@@ -1,0 +1,36 @@
+"""Process-wide settings for a steady per-scan time: one BLAS thread, start-up objects kept out of the
+garbage collector's way.
+
+- The runtime's numeric work is a stream of small matrix products (1081 beams x a few dozen columns) in
+  one processing thread. OpenBLAS would run each on a team of one thread per core; on a 2-core laptop that
+  shares its cores with the drivers, the emulated devices and other programs, such a team spends most of
+  its time waiting for its own threads (a 1081 x 19 -> 32 -> 32 -> 16 -> 2 network: ~20x slower than on
+  one thread). :func:`one_blas_thread` limits every BLAS library loaded in this process to one thread;
+  :data:`ONE_THREAD_ENV` does the same for a child process (read when its libraries load).
+- CPython's full garbage collection walks every tracked object; after the imports (numpy, scipy,
+  rosbags, ...) that is ~10^5 objects and a pause of tens of milliseconds, taken by whichever thread
+  allocates at that moment (often the processing thread in the middle of a scan). :func:`freeze_startup`
+  moves everything alive after start-up into the permanent generation, so later collections only walk
+  what the run itself creates.
+"""
+
+from __future__ import annotations
+
+import gc
+
+ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def one_blas_thread() -> None:
+    """Limit the BLAS libraries loaded so far in this process (numpy's and scipy's OpenBLAS) to one thread."""
+    import numpy  # noqa: F401  (loads numpy's BLAS, so that the limit reaches it)
+    import scipy.linalg  # noqa: F401  (loads scipy's)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+
+
+def freeze_startup() -> None:
+    """Collect once, then exempt every object alive now from later collections (``gc.freeze``)."""
+    gc.collect()
+    gc.freeze()

@@ -1,0 +1,17 @@
+"""The per-stage CPU table of ``glassmap bench --stages``."""
+
+from runtime.processor import MappingProcessor
+from runtime.stageprof import STAGES, stage_profile
+from tests.runtime.test_bad_input import recording
+
+
+def test_stage_profile_times_every_scan_and_restores_the_functions(tmp_path):
+    before = MappingProcessor.__dict__["process"]
+    t = stage_profile(str(recording(tmp_path / "rec.mcap", n=12)))
+    assert MappingProcessor.__dict__["process"] is before  # unwrapped again
+    whole, glass = STAGES[0][1], "glass path (GlassMapper.process)"
+    assert t.scans == 12 and t.calls[whole] == 12 and t.calls[glass] == 12
+    assert 0 < t.cpu[glass] <= t.cpu[whole] <= t.process_cpu
+    table = t.table().splitlines()
+    assert len(table) == 2 + len(STAGES) + 1
+    assert all(label in t.table() for _, label, _, _ in STAGES)
