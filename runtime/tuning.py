@@ -6,7 +6,9 @@ garbage collector's way.
   shares its cores with the drivers, the emulated devices and other programs, such a team spends most of
   its time waiting for its own threads (a 1081 x 19 -> 32 -> 32 -> 16 -> 2 network: ~20x slower than on
   one thread). :func:`one_blas_thread` limits every BLAS library loaded in this process to one thread;
-  :data:`ONE_THREAD_ENV` does the same for a child process (read when its libraries load).
+  :data:`ONE_THREAD_ENV` does the same for libraries loaded later and for child processes (read when their
+  libraries load). The ``glassmap`` program does both at start (:func:`one_thread_per_process`): its
+  parallel jobs are processes (replays, benchmark, experiment), each single-threaded.
 - CPython's full garbage collection walks every tracked object; after the imports (numpy, scipy,
   rosbags, ...) that is ~10^5 objects and a pause of tens of milliseconds, taken by whichever thread
   allocates at that moment (often the processing thread in the middle of a scan). :func:`freeze_startup`
@@ -17,17 +19,28 @@ garbage collector's way.
 from __future__ import annotations
 
 import gc
+import os
 
 ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def one_blas_thread() -> None:
-    """Limit the BLAS libraries loaded so far in this process (numpy's and scipy's OpenBLAS) to one thread."""
+    """Limit the BLAS libraries loaded so far in this process (numpy's, and scipy's once scipy.ndimage or
+    scipy.linalg is imported) to one thread."""
     import numpy  # noqa: F401  (loads numpy's BLAS, so that the limit reaches it)
-    import scipy.linalg  # noqa: F401  (loads scipy's)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
+
+
+def one_thread_per_process() -> None:
+    """One BLAS / OpenMP thread for this process and the processes it starts: :data:`ONE_THREAD_ENV` unless
+    the environment sets those variables already (an explicit setting wins), then :func:`one_blas_thread`
+    unless OPENBLAS_NUM_THREADS asks for more."""
+    for k, v in ONE_THREAD_ENV.items():
+        os.environ.setdefault(k, v)
+    if os.environ["OPENBLAS_NUM_THREADS"] == "1":
+        one_blas_thread()
 
 
 def freeze_startup() -> None:
