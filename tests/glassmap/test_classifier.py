@@ -154,3 +154,40 @@ def test_the_runtime_path_does_not_load_torch():
             "print('torch' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_maps_with_the_numpy_network_match_the_torch_network():
+    """The glass path over a simulated stretch of the office, once with the numpy network and once with the
+    torch module of the same weights: the occupancy grid is identical, the glass map agrees to float32
+    rounding of the logits (issue 19's accuracy check of the numpy inference)."""
+    import torch
+
+    from glassmap.mapping import GlassMapper
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+
+    class TorchNetwork(GlassClassifier):
+        def logits(self, x):
+            z = ((np.asarray(x, np.float32) - self._mean) * self._inv_std).astype(np.float32)
+            with torch.inference_mode():
+                return self._net(torch.from_numpy(z)).numpy() * np.float32(self._inv_t)
+
+    shipped = GlassClassifier.load_default()
+    ref = TorchNetwork(shipped.layers, shipped.meta)
+    ref._net = shipped.model
+    world = load_world("office")
+    way = world.route()
+    mappers = [GlassMapper(classifier=c) for c in (shipped, ref)]
+    rng = np.random.default_rng(5)
+    for i in range(40):
+        a, b = way[i % (len(way) - 1)], way[i % (len(way) - 1) + 1]
+        xy = a + (b - a) * ((i % 7) / 7.0)
+        pose = np.array([xy[0], xy[1], math.atan2(b[1] - a[1], b[0] - a[0])])
+        scan = simulate_scan(world, pose, rng).to_scan(stamp=0.025 * i, seq=i)
+        for m in mappers:
+            m.process(scan, pose, 0.02)
+    (g0, g1) = [m.grid for m in mappers]
+    np.testing.assert_array_equal(g0["occupancy"], g1["occupancy"])
+    np.testing.assert_array_equal(np.isnan(mappers[0].confidence_map()), np.isnan(mappers[1].confidence_map()))
+    assert np.abs(mappers[0].glass.log_odds - mappers[1].glass.log_odds).max() < 1e-4
+    assert mappers[0].glass.log_odds.any()  # glass was seen
