@@ -210,12 +210,11 @@ def load_classifiers(spec: str) -> dict:
 
 
 def cmd_eval(args) -> int:
-    import torch
-
     from .classifier import ClassifierError
     from .glass_eval import EvalConfig, evaluate_beams, evaluate_worlds, format_table
+    from .threads import one_thread
 
-    torch.set_num_threads(1)
+    one_thread()
     try:
         classifiers = load_classifiers(args.models)
     except ClassifierError as e:

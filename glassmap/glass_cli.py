@@ -108,7 +108,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse._SubParsersActi
 
     p = sub.add_parser("bench", help="time of the per-scan glass path on one core",
                        description="Per-scan time of incidence angles + classifier + registration + update on "
-                       "1081-beam office scans (torch and numpy on one thread), after building a map; the "
+                       "1081-beam office scans (numpy's BLAS on one thread), after building a map; the "
                        "occupancy update is timed separately.")
     p.add_argument("--scans", type=int, default=200, help="scans to time (default: %(default)s)")
     p.add_argument("--method", default="robust3", help="registration method (default: %(default)s)")
@@ -124,12 +124,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse._SubParsersActi
 
 def _single_thread() -> None:
     """numpy's BLAS (the classifier's network) and torch (training) on one thread: their products are small."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from threadpoolctl import threadpool_limits
+    from .threads import one_thread
 
-    threadpool_limits(limits=1, user_api="blas")
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    one_thread()
 
 
 def cmd_experiment(args) -> int:

@@ -211,12 +211,9 @@ _RUNNERS = {"classifier": _classifier, "map": _map, "experiment": _experiment, "
 
 def run_task(task: Task, cfg: BenchmarkConfig) -> TaskResult:
     """Run one work unit; failures are reported in the result, not raised."""
-    try:
-        import torch
+    from glassmap.threads import one_thread
 
-        torch.set_num_threads(1)
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
+    one_thread()  # the classifier runs in numpy: one BLAS thread per worker process
     t0 = time.perf_counter()
     try:
         rows = _RUNNERS[task.part](task, cfg)

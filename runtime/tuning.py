@@ -25,12 +25,10 @@ ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_
 
 
 def one_blas_thread() -> None:
-    """Limit the BLAS libraries loaded so far in this process (numpy's, and scipy's once scipy.ndimage or
-    scipy.linalg is imported) to one thread."""
-    import numpy  # noqa: F401  (loads numpy's BLAS, so that the limit reaches it)
-    from threadpoolctl import threadpool_limits
+    """Limit the BLAS libraries loaded so far in this process to one thread (:func:`glassmap.threads.one_thread`)."""
+    from glassmap.threads import one_thread
 
-    threadpool_limits(limits=1, user_api="blas")
+    one_thread()
 
 
 def one_thread_per_process() -> None:

@@ -13,9 +13,9 @@ from .trial import TrialConfig, TrialResult, run_trial
 
 
 def _init_worker() -> None:
-    import torch
+    from ..threads import one_thread
 
-    torch.set_num_threads(1)
+    one_thread()
 
 
 def _run(args: tuple[TrialConfig, int]) -> TrialResult:
@@ -25,8 +25,8 @@ def _run(args: tuple[TrialConfig, int]) -> TrialResult:
 
 def run_trials(cfg: TrialConfig, seeds: list[int], workers: int | None = None, progress: bool = True,
                desc: str = "trials") -> list[TrialResult]:
-    """Run one trial per seed, in parallel over ``workers`` processes (default: all cores), torch single
-    threaded in each. Results are returned in seed order."""
+    """Run one trial per seed, in parallel over ``workers`` processes (default: all cores), one BLAS
+    thread in each. Results are returned in seed order."""
     from tqdm import tqdm
 
     workers = workers or os.cpu_count() or 1
