@@ -84,8 +84,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     for source in ("messages", "raw"):
         r = replay_file(recording, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
                         as_recorded=False)
-        lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = {r.scans_per_second:.0f} "
-                     f"scans/s = {r.speedup:.1f}x real time")
+        lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = "
+                     f"{r.scans_per_second:.0f} scans/s = {r.speedup:.1f}x real time")
         lines += _stage_lines(r.stages, "")
     if stages:
         from runtime.stageprof import stage_profile
@@ -95,7 +95,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         lines.append(t.table())
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    lines.append(f"peak memory: runtime {own:.0f} MiB; largest child process (emulated devices, map worker) {kids:.0f} MiB")
+    lines.append(f"peak memory: runtime {own:.0f} MiB; largest child process (emulated devices, map worker) "
+                 f"{kids:.0f} MiB")
     lines.append("targets (issue 19): replay from raw >= 400 scans/s (10x real time) on one core; live p99 <= 20 ms "
                  "idle, <= 25 ms with one busy process (--load 1), no scan dropped at 40 Hz; runtime peak memory "
                  "<= 300 MiB")

@@ -28,6 +28,7 @@ import numpy as np
 
 from runtime.tuning import ONE_THREAD_ENV
 
+
 class SeenCells:
     """Blueprint cells hit by the simulated laser's returned beams (true end points from the true pose), on
     ``Blueprint.from_world(world, resolution)``'s grid: the ground truth of which walls were seen."""

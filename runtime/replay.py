@@ -201,7 +201,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     first = last = None
     unprocessed = 0
     pub = _live_publisher(live, path, cfg) if live is not None else None
-    proc.warm_up()
+    proc.warm_up()  # as the live run does; then start-up objects out of the collector's way (runtime.tuning)
     freeze_startup()
     t0 = time.perf_counter()
     try:

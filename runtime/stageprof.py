@@ -52,8 +52,10 @@ class StageTimes:
         for depth, label, _, _ in STAGES:
             t = self.cpu.get(label, 0.0)
             share = f"{100 * t / whole:.0f} %" if whole > 0 else ""
-            rows.append(f"| {'&nbsp;&nbsp;' * 2 * depth}{label} | {self.calls.get(label, 0)} | {1e3 * t / n:.3f} | {share} |")
-        rows.append(f"| all threads of the process (reading, decoding, processing) | | {1e3 * self.process_cpu / n:.3f} | |")
+            indent = "&nbsp;" * 4 * depth
+            rows.append(f"| {indent}{label} | {self.calls.get(label, 0)} | {1e3 * t / n:.3f} | {share} |")
+        rows.append(f"| all threads of the process (reading, decoding, processing) | | "
+                    f"{1e3 * self.process_cpu / n:.3f} | |")
         return "\n".join(rows)
 
 
