@@ -236,7 +236,7 @@ class GlassMapper:
     # -- the per-scan path ---------------------------------------------------------------------------------
     def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,
                 update_occupancy: bool = True, occupancy_pose: np.ndarray | None = None) -> BeamGlass:
-        """One scan: incidence angles, p(glass) (one batched torch call), occupancy update (unless the caller
+        """One scan: incidence angles, p(glass) (one batched network call), occupancy update (unless the caller
         did it already: ``update_occupancy=False``), registration and Bayesian update.
 
         laser_pose: (3,) laser (x, y, yaw) in the map frame (m, rad). sigma: registration sigma (m), scalar or

@@ -62,7 +62,7 @@ class MappingProcessor:
 
     def warm_up(self) -> None:
         """Run the glass classification once on a synthetic scan (a room of 4 x 6 m), without touching the
-        maps or the pose: the first torch call and the first pass through the numpy code cost tens of
+        maps or the pose: the first network call and the first pass through the numpy code cost tens of
         milliseconds, which would otherwise delay the first real scans."""
         from glassmap.types import LaserGeometry
 
