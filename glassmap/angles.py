@@ -148,7 +148,7 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
         n = pts.size
         if n == 0:
             break
-        sub_start = is_start[pts]
+        sub_start = is_start.take(pts)
         seg = sub_start.cumsum()
         seg -= 1
         starts = sub_start.nonzero()[0]
@@ -156,16 +156,16 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
         ends[:-1] = starts[1:] - 1
         ends[-1] = n - 1
         # per piece: the chord from its first to its last point as a x + b y + c = 0 (unit normal (a, b))
-        fx, fy = x[starts], y[starts]
-        dx, dy = x[ends] - fx, y[ends] - fy
+        fx, fy = x.take(starts), y.take(starts)
+        dx, dy = x.take(ends) - fx, y.take(ends) - fy
         length = np.hypot(dx, dy)
         degenerate = length <= 1e-9
         length[degenerate] = 1.0
         a, b = -dy / length, dx / length
         c = -(a * fx + b * fy)
-        dist = a[seg] * x
-        dist += b[seg] * y
-        dist += c[seg]
+        dist = a.take(seg) * x
+        dist += b.take(seg) * y
+        dist += c.take(seg)
         dist = np.abs(dist, out=dist)
         if degenerate.any():  # a closed piece: distance to its first point
             dg = degenerate[seg].nonzero()[0]
@@ -174,21 +174,25 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
         excess -= tol
         seg_max = np.maximum.reduceat(excess, starts)
         # a piece with fewer than min_points points cannot yield a segment: never split it
-        split_seg = (seg_max > 0) & (ends - starts + 1 >= min_pts)
+        split_seg = seg_max > 0
+        split_seg &= ends - starts >= min_pts - 1
         if not split_seg.any():
             break
-        in_split = split_seg[seg]
-        cand = (in_split & (excess == seg_max[seg])).nonzero()[0]
-        cs = seg[cand]
+        in_split = split_seg.take(seg)
+        cand = excess == seg_max.take(seg)
+        cand &= in_split
+        cand = cand.nonzero()[0]
+        cs = seg.take(cand)
         first = np.empty(cand.size, dtype=bool)
         first[0] = True
         np.not_equal(cs[1:], cs[:-1], out=first[1:])
-        at = pts[cand[first]]
-        at = at[~is_start[at]]
+        at = pts.take(cand[first])
+        at = at[~is_start.take(at)]
         if at.size == 0:
             break
         is_start[at] = True
-        pts, x, y, tol = pts[in_split], x[in_split], y[in_split], tol[in_split]
+        keep = in_split.nonzero()[0]  # index arrays and take: cheaper than four boolean compressions
+        pts, x, y, tol = pts.take(keep), x.take(keep), y.take(keep), tol.take(keep)
     return is_start
 
 
@@ -278,12 +282,22 @@ def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, se
     ar = np.arange(m)
     parent = ar.copy()
     k = dphi / math.sin(p.break_lambda)
+    # all lags at once: (m, lags) candidate earlier points j = i - lag; a point links to the nearest one
+    lags = np.arange(1, min(p.link_lag, m - 1) + 1)
+    j = ar[:, None] - lags
+    before = j >= 0
+    np.maximum(j, 0, out=j)
     gx, gy = sx[:, 0].copy(), sx[:, 1].copy()
-    for lag in range(1, min(p.link_lag, m - 1) + 1):
-        d = np.hypot(gx[lag:] - gx[:-lag], gy[lag:] - gy[:-lag])
-        thr = np.minimum(sr[lag:], sr[:-lag]) * (si[lag:] - si[:-lag]) * k + 3.0 * p.break_sigma
-        i = ((d <= thr) & (parent[lag:] == ar[lag:])).nonzero()[0] + lag
-        parent[i] = i - lag
+    d = np.hypot(gx[:, None] - gx.take(j), gy[:, None] - gy.take(j))
+    thr = np.minimum(sr[:, None], sr.take(j))
+    thr *= si[:, None] - si.take(j)
+    thr *= k
+    thr += 3.0 * p.break_sigma
+    link = d <= thr
+    link &= before
+    nearest = link.argmax(axis=1)
+    linked = link[ar, nearest]
+    parent[linked] = ar[linked] - lags[nearest[linked]]
     for _ in range(32):
         pp = parent[parent]
         if (pp == parent).all():
