@@ -58,6 +58,17 @@ def window_offsets(k: int) -> np.ndarray:
     return offs
 
 
+@functools.lru_cache(maxsize=8)
+def _window_distances(k: int, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (m) from the centre cell to the cells of the k x k window: (distinct distances (d,),
+    index (k*k,) of each window cell's distance in them, in :func:`window_offsets` order). Read-only."""
+    offs = window_offsets(k)
+    dist, spread = np.unique(np.hypot(offs[:, 0], offs[:, 1]) * resolution, return_inverse=True)
+    dist.flags.writeable = False
+    spread.flags.writeable = False
+    return dist, spread
+
+
 def _inside(cells: np.ndarray, shape: tuple[int, int], margin: int) -> np.ndarray:
     h, w = shape
     return ((cells[:, 0] >= margin) & (cells[:, 0] < w - margin) & (cells[:, 1] >= margin)
@@ -140,15 +151,18 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
     offs = window_offsets(k)
     sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))[:, None]
     if decay_ref == "cell":
-        dist = (np.hypot(offs[:, 0], offs[:, 1]) * resolution)[None, :]
+        # the window's cells lie at only a few distinct distances (3 for k = 3): eq. 6 and the logit are
+        # evaluated once per beam and distance, then spread over the window
+        dist, spread = _window_distances(k, float(resolution))
+        pc = np.clip(decayed_probability(p[:, None], dist[None, :], sig), p_clip, 1.0 - p_clip)
+        lo = logit(pc).take(spread, axis=1)
     elif decay_ref == "endpoint":
         centres = origin + (centre_cells[:, None, :] + offs[None, :, :] + 0.5) * resolution
         d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]
         dist = np.hypot(d[..., 0], d[..., 1])
+        lo = logit(np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip))
     else:
         raise ValueError(f"decay reference must be 'cell' or 'endpoint', got {decay_ref!r}")
-    pc = np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip)
-    lo = logit(pc)
     flat = (centre_cells[:, 1] * w + centre_cells[:, 0])[:, None] + (offs[:, 1] * w + offs[:, 0])[None, :]
     inside = _inside(centre_cells, shape, k // 2)
     if inside.all():
@@ -160,11 +174,15 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
     return Observations(flat[ok], lo[ok])
 
 
-def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:
-    """Combine one scan's observations per cell. Returns (unique flat cells, log-odds increment per cell).
+def aggregate(obs: Observations, aggregation: Aggregation = "scan",
+              width: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Combine one scan's observations per cell. Returns (unique flat cells in increasing order, log-odds
+    increment per cell).
 
     ``"scan"``: the mean log-odds over the observations of the cell (many beams hitting one cell in one
     scan are not independent evidence); ``"beam"``: the sum (every beam counts, the paper's update).
+    width: the grid's width in cells (flat = iy * width + ix), if known: lets the cells be counted densely
+    over their bounding box instead of sorted when they span many rows of a wide map.
     """
     if aggregation not in ("scan", "beam"):
         raise ValueError(f"aggregation must be 'scan' or 'beam', got {aggregation!r}")
@@ -172,14 +190,33 @@ def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.
         return obs.flat.astype(np.int64), obs.log_odds.astype(np.float64)
     lo_idx, hi_idx = int(obs.flat.min()), int(obs.flat.max())
     span = hi_idx - lo_idx + 1
-    if span <= 8 * obs.flat.size + 1024:
-        # dense bincount over a compact touched index range: cheaper than sorting (a wide map makes the
-        # range of a scan's cells span whole rows, where sorting wins)
-        local = obs.flat - lo_idx
+    dense_max = 8 * obs.flat.size + 1024
+    local = None
+    if span <= dense_max:
+        # dense bincount over a compact touched index range: cheaper than sorting
+        local, uniq_of_local = obs.flat - lo_idx, None
+    elif width is not None:
+        # a wide map makes the range of a scan's cells span whole rows: count over their bounding box
+        iy, ix = np.divmod(obs.flat, width)
+        x0, y0 = int(ix.min()), int(iy.min())
+        bw = int(ix.max()) - x0 + 1
+        span = bw * (int(iy.max()) - y0 + 1)
+        if span <= dense_max:
+            iy -= y0
+            ix -= x0
+            local = iy
+            local *= bw
+            local += ix
+
+            def uniq_of_local(u: np.ndarray) -> np.ndarray:
+                return (u // bw + y0) * width + (u % bw + x0)
+    if local is not None:
+        # bincount accumulates in observation order, as the sorted path's bincount does: the same sums
         count = np.bincount(local, minlength=span)
         uniq_local = np.flatnonzero(count)
         total = np.bincount(local, weights=obs.log_odds, minlength=span)[uniq_local]
-        uniq, count = uniq_local + lo_idx, count[uniq_local]
+        uniq = uniq_local + lo_idx if uniq_of_local is None else uniq_of_local(uniq_local)
+        count = count[uniq_local]
     else:
         uniq, inv, count = np.unique(obs.flat, return_inverse=True, return_counts=True)
         total = np.bincount(inv, weights=obs.log_odds, minlength=uniq.size)

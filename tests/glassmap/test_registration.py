@@ -114,6 +114,25 @@ def test_direct_vs_robust_assignment_on_hand_grid():
     assert corner == pytest.approx(0.4 * math.exp(-0.08 / 0.02) + 0.5)
 
 
+def test_robust_observations_are_eq6_of_each_window_cell():
+    """Every (beam, window cell) observation of the cell-referenced robust method is exactly the logit of
+    eq. 6 at that cell's distance, with per-beam sigmas (zero included)."""
+    rng = np.random.default_rng(5)
+    n, res, k = 200, 0.05, 5
+    p = rng.uniform(0.01, 0.99, n)
+    sigma = rng.uniform(0.0, 0.2, n)
+    sigma[:10] = 0.0
+    cells = np.stack([rng.integers(5, 95, n), rng.integers(5, 95, n)], axis=1)
+    obs = registration_observations(p, np.zeros((n, 2)), cells, sigma, np.zeros(2), res, (100, 100), "robust", k=k)
+    offs = window_offsets(k)
+    dist = np.hypot(offs[:, 0], offs[:, 1]) * res
+    want = logit(np.clip(decayed_probability(p[:, None], dist[None, :], sigma[:, None]), 1e-3, 1 - 1e-3))
+    flat = (cells[:, 1] * 100 + cells[:, 0])[:, None] + (offs[:, 1] * 100 + offs[:, 0])[None, :]
+    keep = want != 0.0
+    np.testing.assert_array_equal(obs.flat, flat[keep])
+    np.testing.assert_array_equal(obs.log_odds, want[keep])
+
+
 def test_window_cells_outside_grid_are_dropped():
     occ = hand_grid()
     cells = np.array([[0, 0]])
@@ -135,6 +154,21 @@ def test_per_scan_aggregation_mean_vs_per_beam_sum():
     assert cells.tolist() == [5, 10_000_000] and mean.tolist() == [3.0, 1.0]
     with pytest.raises(ValueError):
         aggregate(obs, "cell")
+
+
+def test_aggregation_over_the_bounding_box_of_a_wide_map_equals_the_sorted_one():
+    """Cells spread over many rows of a wide grid: counting over their bounding box (width given) gives
+    the cells and the increments of the sorting path, bit for bit."""
+    rng = np.random.default_rng(3)
+    width = 5000
+    ix, iy = rng.integers(100, 160, 4000), rng.integers(10, 90, 4000)
+    obs = Observations(iy * width + ix, rng.normal(0.0, 2.0, 4000))
+    for agg in ("scan", "beam"):
+        cells_sorted, inc_sorted = aggregate(obs, agg)
+        cells_box, inc_box = aggregate(obs, agg, width=width)
+        np.testing.assert_array_equal(cells_box, cells_sorted)
+        np.testing.assert_array_equal(inc_box, inc_sorted)
+    assert np.all(np.diff(cells_box) > 0)
 
 
 def test_window_offsets_validation():
