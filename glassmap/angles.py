@@ -132,18 +132,26 @@ def _breaks(idx: np.ndarray, r: np.ndarray, xy: np.ndarray, dphi: float, p: Angl
     return brk
 
 
-def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Iterative end-point fit on all runs at once; each iteration only touches the pieces that were split
-    in the previous one. Returns the final start mask.
+_COMPRESS_MIN = 256
+"""The end-point fit drops the points of finished pieces from its arrays only while more than this many
+points are left: below it an array operation costs about the same whatever the length, and dropping them
+would cost five more operations per level."""
 
-    The loop runs once per split level (a handful), each iteration a fixed number of array operations;
-    ndarray methods instead of numpy functions where they do the same (the wrappers cost ~1 us per call,
-    a sizeable share of a 1081-beam scan)."""
+
+def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
+    """Iterative end-point fit on all runs at once. Returns the final start mask.
+
+    The loop runs once per split level (a handful), each iteration a fixed number of array operations, so
+    the cost is per operation rather than per point: ndarray methods and ``take`` with index arrays where
+    they do the same as fancy indexing or boolean masks, more cheaply. A piece that is not split keeps its
+    chord and is never split later; its points are dropped while many points are left (``_COMPRESS_MIN``).
+    The farthest point of a piece is never its first one (distance 0, tolerance >= 0), so every level
+    adds a start inside each piece it splits."""
     is_start = starts_mask.copy()
     pts = np.arange(len(xy))
     x, y = xy[:, 0].copy(), xy[:, 1].copy()
     tol = p.split_tol + p.split_tol_rel * r
-    min_pts = max(p.min_points, 3)
+    min_len = max(p.min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
     for _ in range(p.max_split_iterations):
         n = pts.size
         if n == 0:
@@ -153,46 +161,47 @@ def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParam
         seg -= 1
         starts = sub_start.nonzero()[0]
         ends = np.empty_like(starts)
-        ends[:-1] = starts[1:] - 1
-        ends[-1] = n - 1
+        ends[:-1] = starts[1:]
+        ends[-1] = n
+        ends -= 1
         # per piece: the chord from its first to its last point as a x + b y + c = 0 (unit normal (a, b))
         fx, fy = x.take(starts), y.take(starts)
         dx, dy = x.take(ends) - fx, y.take(ends) - fy
         length = np.hypot(dx, dy)
-        degenerate = length <= 1e-9
-        length[degenerate] = 1.0
+        degenerate = length <= 1e-9 if length.min() <= 1e-9 else None
+        if degenerate is not None:
+            length[degenerate] = 1.0
         a, b = -dy / length, dx / length
         c = -(a * fx + b * fy)
         dist = a.take(seg) * x
         dist += b.take(seg) * y
         dist += c.take(seg)
         dist = np.abs(dist, out=dist)
-        if degenerate.any():  # a closed piece: distance to its first point
+        if degenerate is not None:  # a closed piece: distance to its first point
             dg = degenerate[seg].nonzero()[0]
             dist[dg] = np.hypot(x[dg] - fx[seg[dg]], y[dg] - fy[seg[dg]])
         excess = dist
         excess -= tol
         seg_max = np.maximum.reduceat(excess, starts)
-        # a piece with fewer than min_points points cannot yield a segment: never split it
         split_seg = seg_max > 0
-        split_seg &= ends - starts >= min_pts - 1
-        if not split_seg.any():
+        split_seg &= ends - starts >= min_len
+        n_split = np.count_nonzero(split_seg)
+        if n_split == 0:
             break
         in_split = split_seg.take(seg)
         cand = excess == seg_max.take(seg)
         cand &= in_split
         cand = cand.nonzero()[0]
-        cs = seg.take(cand)
-        first = np.empty(cand.size, dtype=bool)
-        first[0] = True
-        np.not_equal(cs[1:], cs[:-1], out=first[1:])
-        at = pts.take(cand[first])
-        at = at[~is_start.take(at)]
-        if at.size == 0:
-            break
-        is_start[at] = True
-        keep = in_split.nonzero()[0]  # index arrays and take: cheaper than four boolean compressions
-        pts, x, y, tol = pts.take(keep), x.take(keep), y.take(keep), tol.take(keep)
+        if cand.size > n_split:  # ties: the first farthest point of each piece
+            cs = seg.take(cand)
+            first = np.empty(cand.size, dtype=bool)
+            first[0] = True
+            np.not_equal(cs[1:], cs[:-1], out=first[1:])
+            cand = cand[first]
+        is_start[pts.take(cand)] = True
+        if n > _COMPRESS_MIN:
+            keep = in_split.nonzero()[0]
+            pts, x, y, tol = pts.take(keep), x.take(keep), y.take(keep), tol.take(keep)
     return is_start
 
 
@@ -203,10 +212,11 @@ def _merge(xy: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: Angle
     if len(starts) < 2:
         return is_start
     seg = np.cumsum(is_start) - 1
-    mom = _moments(xy, seg, len(starts))
-    _, normals, _ = _tls(mom)
+    k = len(starts)
+    mom = _moments(xy, seg, k)
+    _, normals, rms = _tls(np.concatenate((mom, mom[1:] + mom[:-1])))  # the pieces, then adjacent pairs
+    normals, joint_rms = normals[:k], rms[k:]
     cos = np.abs(np.einsum("ij,ij->i", normals[1:], normals[:-1]))
-    _, _, joint_rms = _tls(mom[1:] + mom[:-1])
     ok = ~run_start[starts[1:]] & (cos > math.cos(p.merge_angle)) & (joint_rms <= p.max_rms)
     out = is_start.copy()
     out[starts[1:][ok]] = False
@@ -214,20 +224,25 @@ def _merge(xy: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: Angle
 
 
 def _finish(n: int, idx: np.ndarray, u: np.ndarray, xy: np.ndarray, seg: np.ndarray, n_seg: int,
-            p: AngleParams, drop_last: bool = False) -> IncidenceResult:
-    """Fit every segment, keep the good ones, and compute per-beam incidence angles."""
+            p: AngleParams, drop_last: bool = False, quality: tuple | None = None) -> IncidenceResult:
+    """Fit every segment (unless ``quality``, the result of :func:`_quality` for these segments, is given),
+    keep the good ones, and compute per-beam incidence angles."""
     incidence = np.full(n, np.nan)
     segment = np.full(n, -1, dtype=np.int64)
     if n_seg == 0 or len(idx) == 0:
         return IncidenceResult(incidence, segment, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
-    mom, cen, normals, keep = _quality(xy, seg, n_seg, p)
+    mom, cen, normals, keep = _quality(xy, seg, n_seg, p) if quality is None else quality
     if drop_last:
         keep[-1] = False  # the bucket of points on no segment
     new_id = np.cumsum(keep) - 1
-    ok = keep[seg]
-    cosang = np.abs(np.einsum("ij,ij->i", u[ok], normals[seg[ok]]))
-    incidence[idx[ok]] = np.arccos(np.clip(cosang, 0.0, 1.0))
-    segment[idx[ok]] = new_id[seg[ok]]
+    on = keep.take(seg).nonzero()[0]
+    s = seg.take(on)
+    cosang = u[:, 0].take(on) * normals[:, 0].take(s)
+    cosang += u[:, 1].take(on) * normals[:, 1].take(s)
+    np.abs(cosang, out=cosang)
+    at = idx.take(on)
+    incidence[at] = np.arccos(np.clip(cosang, 0.0, 1.0, out=cosang), out=cosang)
+    segment[at] = new_id.take(s)
     return IncidenceResult(incidence, segment, normals[keep], cen[keep], mom[keep, 0].astype(np.int64))
 
 
@@ -244,17 +259,24 @@ def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams
     is_start = _merge(xy, is_start, run_start, params)
     seg = np.cumsum(is_start) - 1
     n_seg = int(is_start.sum())
+    quality = None
     if params.link_lag > 0:
-        seg, n_seg = _second_pass(xy, rv, idx, abs(dphi), seg, n_seg, params)
-    return _finish(n, idx, u, xy, seg, n_seg, params)
+        quality = _quality(xy, seg, n_seg, params)
+        seg, n_seg2, left = _second_pass(xy, rv, idx, abs(dphi), seg, n_seg, quality[3], params)
+        if left is not None:
+            quality = _requality(xy, seg, n_seg2, quality, left, params)
+        n_seg = n_seg2
+    return _finish(n, idx, u, xy, seg, n_seg, params, quality=quality)
 
 
 def _quality(xy: np.ndarray, seg: np.ndarray, n_seg: int, p: AngleParams):
     """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
     mom = _moments(xy, seg, n_seg)
     cen, normals, rms = _tls(mom)
-    rel, nrm = xy - cen[seg], normals[seg]
-    along = rel[:, 0] * nrm[:, 1] - rel[:, 1] * nrm[:, 0]  # coordinate along the segment's direction
+    # coordinate along the segment's direction
+    along = xy[:, 0] - cen[:, 0].take(seg)
+    along *= normals[:, 1].take(seg)
+    along -= (xy[:, 1] - cen[:, 1].take(seg)) * normals[:, 0].take(seg)
     lo = np.full(n_seg, np.inf)
     hi = np.full(n_seg, -np.inf)
     np.minimum.at(lo, seg, along)
@@ -263,21 +285,32 @@ def _quality(xy: np.ndarray, seg: np.ndarray, n_seg: int, p: AngleParams):
     return mom, cen, normals, keep
 
 
+def _requality(xy: np.ndarray, seg: np.ndarray, n_seg: int, first: tuple, left: np.ndarray, p: AngleParams):
+    """:func:`_quality` after the second pass, fitting only the segments with points in ``left`` (the
+    points of the first pass's rejected segments); the first pass's good segments keep their fits, which
+    are the same numbers (bincount adds each segment's points in the same order)."""
+    mom, cen, normals, keep = _quality(xy[left], seg.take(left), n_seg, p)
+    kept = first[3].nonzero()[0]
+    mom[kept], cen[kept], normals[kept], keep[kept] = first[0][kept], first[1][kept], first[2][kept], True
+    return mom, cen, normals, keep
+
+
 def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, seg: np.ndarray, n_seg: int,
-                 p: AngleParams) -> tuple[np.ndarray, int]:
+                 keep: np.ndarray, p: AngleParams) -> tuple[np.ndarray, int, np.ndarray | None]:
     """Split-and-merge again on the points of the pieces that were too short.
 
     Glass returns come in short fragments interleaved with beams that passed through the pane (which range
     an object behind it, itself fragmented). Each leftover point links to the nearest earlier leftover
     point (up to ``link_lag`` points back) that is as close as a breakpoint-free neighbour would be for
     that beam gap; the resulting chains (roots by pointer jumping) are split and merged like runs. All
-    vectorized over points; the loops run over lags and pointer-jumping steps.
+    vectorized over points; the loop runs over pointer-jumping steps. ``keep``: the first pass's good
+    segments. Returns the segment labels, their number and the points whose segment may have changed
+    (None: none did).
     """
-    _, _, _, keep = _quality(xy, seg, n_seg, p)
     left = (~keep[seg]).nonzero()[0]
     m = left.size
     if m < p.min_points:
-        return seg, n_seg
+        return seg, n_seg, None
     sx, sr, si = xy[left], r[left], idx[left]
     ar = np.arange(m)
     parent = ar.copy()
@@ -306,7 +339,7 @@ def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, se
     # chains shorter than min_points cannot give a segment: leave them out
     big = np.bincount(parent, minlength=m)[parent] >= p.min_points
     if not big.any():
-        return seg, n_seg
+        return seg, n_seg, None
     order = big.nonzero()[0]
     order = order[np.argsort(parent[order], kind="stable")]
     root = parent[order]
@@ -317,7 +350,7 @@ def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, se
     is2 = _merge(px, _split(px, pr, brk, p), brk, p)
     seg = seg.copy()
     seg[left[order]] = n_seg + np.cumsum(is2) - 1
-    return seg, n_seg + int(is2.sum())
+    return seg, n_seg + int(is2.sum()), left
 
 
 def hough(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = AngleParams()) -> IncidenceResult:
