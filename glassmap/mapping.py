@@ -193,7 +193,7 @@ class GlassMapper:
         obs = registration_observations(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
                                         g.shape, method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref,
                                         p_clip=cfg.glass.p_clip)
-        flat, delta = aggregate(obs, cfg.aggregation, width=g.shape[1])
+        flat, delta = aggregate(obs, cfg.aggregation)
         self.glass.update(flat, delta)
         return int(use.sum())
 

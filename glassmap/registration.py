@@ -174,15 +174,12 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
     return Observations(flat[ok], lo[ok])
 
 
-def aggregate(obs: Observations, aggregation: Aggregation = "scan",
-              width: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:
     """Combine one scan's observations per cell. Returns (unique flat cells in increasing order, log-odds
     increment per cell).
 
     ``"scan"``: the mean log-odds over the observations of the cell (many beams hitting one cell in one
     scan are not independent evidence); ``"beam"``: the sum (every beam counts, the paper's update).
-    width: the grid's width in cells (flat = iy * width + ix), if known: lets the cells be counted densely
-    over their bounding box instead of sorted when they span many rows of a wide map.
     """
     if aggregation not in ("scan", "beam"):
         raise ValueError(f"aggregation must be 'scan' or 'beam', got {aggregation!r}")
@@ -190,35 +187,36 @@ def aggregate(obs: Observations, aggregation: Aggregation = "scan",
         return obs.flat.astype(np.int64), obs.log_odds.astype(np.float64)
     lo_idx, hi_idx = int(obs.flat.min()), int(obs.flat.max())
     span = hi_idx - lo_idx + 1
-    dense_max = 8 * obs.flat.size + 1024
-    local = None
-    if span <= dense_max:
+    m = obs.flat.size
+    if span <= 8 * m + 1024:
         # dense bincount over a compact touched index range: cheaper than sorting
-        local, uniq_of_local = obs.flat - lo_idx, None
-    elif width is not None:
-        # a wide map makes the range of a scan's cells span whole rows: count over their bounding box
-        iy, ix = np.divmod(obs.flat, width)
-        x0, y0 = int(ix.min()), int(iy.min())
-        bw = int(ix.max()) - x0 + 1
-        span = bw * (int(iy.max()) - y0 + 1)
-        if span <= dense_max:
-            iy -= y0
-            ix -= x0
-            local = iy
-            local *= bw
-            local += ix
-
-            def uniq_of_local(u: np.ndarray) -> np.ndarray:
-                return (u // bw + y0) * width + (u % bw + x0)
-    if local is not None:
-        # bincount accumulates in observation order, as the sorted path's bincount does: the same sums
+        local = obs.flat - lo_idx
         count = np.bincount(local, minlength=span)
         uniq_local = np.flatnonzero(count)
         total = np.bincount(local, weights=obs.log_odds, minlength=span)[uniq_local]
-        uniq = uniq_local + lo_idx if uniq_of_local is None else uniq_of_local(uniq_local)
-        count = count[uniq_local]
+        uniq, count = uniq_local + lo_idx, count[uniq_local]
     else:
-        uniq, inv, count = np.unique(obs.flat, return_inverse=True, return_counts=True)
+        # a wide map makes a scan's cells span whole rows: sort (cell, observation) keys packed in one
+        # int64, a plain sort being several times cheaper than the argsort inside np.unique
+        shift = max(m.bit_length(), 1)
+        if lo_idx < 0 or span >= 1 << (62 - shift):
+            uniq, inv, count = np.unique(obs.flat, return_inverse=True, return_counts=True)
+        else:
+            key = obs.flat - lo_idx
+            key <<= shift
+            key |= np.arange(m)
+            key.sort()
+            order = key & ((1 << shift) - 1)
+            key >>= shift
+            head = np.empty(m, dtype=bool)
+            head[0] = True
+            np.not_equal(key[1:], key[:-1], out=head[1:])
+            inv = np.empty(m, dtype=np.int64)
+            inv[order] = head.cumsum() - 1
+            uniq = key[head]
+            uniq += lo_idx
+            count = np.bincount(inv, minlength=uniq.size)
+        # accumulated in observation order either way: the same sums
         total = np.bincount(inv, weights=obs.log_odds, minlength=uniq.size)
     if aggregation == "beam":
         return uniq, total
