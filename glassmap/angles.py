@@ -91,19 +91,29 @@ def _moments(xy: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
 def _tls(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Total least squares lines from moments (k, 6): centroids (k, 2), unit normals (k, 2), rms (k,) m."""
     n = np.maximum(m[:, 0], 1.0)
-    cen = m[:, 1:3] / n[:, None]
-    mx, my = cen[:, 0], cen[:, 1]
-    cxx = m[:, 3] / n - mx * mx
-    cyy = m[:, 4] / n - my * my
-    cxy = m[:, 5] / n - mx * my
-    phi = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # direction of the line
+    q = m[:, 1:] / n[:, None]  # mean x, mean y, sxx / n, syy / n, sxy / n
+    cen = q[:, :2]
+    cov = q[:, 2:]
+    cov -= cen[:, _COV_A] * cen[:, _COV_B]  # cxx, cyy, cxy
+    cxx, cyy, cxy = cov[:, 0], cov[:, 1], cov[:, 2]
+    phi = np.arctan2(2.0 * cxy, cxx - cyy)
+    phi *= 0.5  # direction of the line
     normals = np.empty_like(cen)
     np.sin(phi, out=normals[:, 0])
     normals[:, 0] *= -1.0
     np.cos(phi, out=normals[:, 1])
-    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
-    lam_min = 0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
-    return cen, normals, np.sqrt(np.maximum(lam_min, 0.0))
+    tr = cxx + cyy
+    det = cxx * cyy
+    det -= cxy * cxy
+    disc = 0.25 * tr
+    disc *= tr
+    disc -= det
+    lam_min = 0.5 * tr
+    lam_min -= np.sqrt(np.maximum(disc, 0.0, out=disc), out=disc)
+    return cen, normals, np.sqrt(np.maximum(lam_min, 0.0, out=lam_min), out=lam_min)
+
+
+_COV_A, _COV_B = np.array([0, 1, 0]), np.array([0, 1, 1])  # columns of the products mx mx, my my, mx my
 
 
 def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float):
