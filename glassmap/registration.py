@@ -167,6 +167,8 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
     inside = _inside(centre_cells, shape, k // 2)
     if inside.all():
         ok = lo != 0.0
+        if ok.all():  # the usual case: no mask to apply
+            return Observations(flat.ravel(), lo.ravel())
     else:
         cx = centre_cells[:, 0:1] + offs[None, :, 0]
         cy = centre_cells[:, 1:2] + offs[None, :, 1]
