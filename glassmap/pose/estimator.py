@@ -29,6 +29,7 @@ import numpy as np
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
+from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points)
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
@@ -224,6 +225,7 @@ class PoseEstimator:
         # optional callable -> (H, W) bool mask of cells the occupancy update must not clear (e.g. the glass
         # mapper's ``protect_mask``); called after the grid has grown to contain the scan
         self.protect_mask_fn = None
+        self.last_key_scan: KeyScan | None = None  # the last key scan as placed (for a pose graph)
         if config.map_uncertainty:
             for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER):
                 if name not in self.occupancy.grid.layer_names:
@@ -335,6 +337,11 @@ class PoseEstimator:
                 self._store_hits(angles, ranges, scan.geometry.range_max)
         st.t_integrate = time.perf_counter() - t3
         self._key_pose = self.ekf.pose.copy()
+        self.last_key_scan = KeyScan(
+            seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.ekf.cov.copy(),
+            odom=np.zeros(3) if self._last_odom is None else self._last_odom.copy(), fused_dims=st.last_fused_dims,
+            written=bool(write), angles=np.asarray(angles), ranges=ranges, range_max=float(scan.geometry.range_max),
+            mount=self.mount)
         self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)

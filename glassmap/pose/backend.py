@@ -1,0 +1,111 @@
+"""The SLAM back end: key scans from the front end -> pose graph + submaps + loop closure.
+
+The front end (:class:`~glassmap.pose.estimator.PoseEstimator`) keeps matching every scan against the map it
+builds; the back end takes each key scan it hands over (``PoseEstimator.last_key_scan``) and
+
+* appends a node to the :class:`~glassmap.pose.graph.PoseGraph` with a *sequential* edge from the previous
+  key scan: the front end's relative pose (odometry fused with scan-to-map matching), with the covariance
+  wheel odometry would have over that motion (``MotionNoise``; the matches make the relative pose better
+  than that locally, but the map they match against drifts, and this is the error a loop must spread);
+* files it into the open :class:`~glassmap.pose.submaps.Submap`;
+* every few key scans asks the :class:`~glassmap.pose.loop_closure.LoopCloser` for closures against older
+  submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves).
+
+The corrected pose of anything the front end places is ``correct(pose)``: the front-end pose moved by the
+correction of the newest node (graph solution (+) front-end pose^-1). The back end is pure computation; the
+runtime runs it in a worker thread so no scan waits for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from glassmap.pose.graph import PoseGraph
+from glassmap.pose.keyscan import KeyScan
+from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
+from glassmap.pose.motion import MotionNoise, compose, relative
+from glassmap.pose.submaps import SubmapConfig, SubmapStore
+
+
+@dataclass(frozen=True)
+class BackEndConfig:
+    """motion: the odometry noise model of sequential edges; min_sigma: (x, y, yaw) standard deviations
+    added to every sequential edge (m, m, rad); loop_closure: on/off and its settings; submaps."""
+
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
+    loop_closure: bool = True
+    closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    submaps: SubmapConfig = field(default_factory=SubmapConfig)
+
+
+@dataclass(frozen=True)
+class Closure:
+    """An accepted loop closure: key scan ``node`` at ``pose`` (3,) in the frame of node ``anchor``."""
+
+    anchor: int
+    node: int
+    pose: np.ndarray
+    cov: np.ndarray
+    stamp: float
+
+
+class GraphBackEnd:
+    """Pose graph over the front end's key scans, with loop closure (see the module docstring)."""
+
+    def __init__(self, config: BackEndConfig = BackEndConfig(), sigma_hit: float = 0.03) -> None:
+        self.config = config
+        self.graph: PoseGraph | None = None
+        self.submaps = SubmapStore(config.submaps)
+        self.closer = LoopCloser(config.closure, sigma_hit)
+        self.keys: list[KeyScan] = []
+        self.travel: list[float] = []  # path length (m) at each node, from the front-end poses
+        self.closures: list[Closure] = []
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, key: KeyScan) -> list[Closure]:
+        """Add one key scan; returns the loop closures accepted with it."""
+        if self.graph is None:
+            self.graph = PoseGraph(key.pose, np.diag([1e-8, 1e-8, 1e-8]))
+            node = 0
+            self.travel.append(0.0)
+        else:
+            prev = self.keys[-1]
+            rel = relative(prev.pose, key.pose)
+            dt = max(key.stamp - prev.stamp, 0.0)
+            cov = self.config.motion.covariance(rel, dt) + np.diag(np.square(self.config.min_sigma))
+            node = self.graph.add_node(rel, cov)
+            self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
+        self.keys.append(key)
+        self.submaps.add(node, key, self.travel[-1])
+        if not self.config.loop_closure or node % self.config.closure.check_every:
+            return []
+        new = self.closer.check(self.submaps, self.graph.poses, node, key, self.travel[-1])
+        out = []
+        for c in new:
+            self.graph.add_loop(c.anchor, c.node, c.pose, c.cov)
+            out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp))
+        if out:
+            self.submaps.clear_cache()
+        self.closures.extend(out)
+        return out
+
+    def poses(self) -> np.ndarray:
+        """(N, 3) optimised key-scan poses (base, map frame)."""
+        return self.graph.refresh() if self.graph is not None else np.zeros((0, 3))
+
+    def correction(self) -> np.ndarray:
+        """(3,) the rigid transform taking front-end poses near the newest key scan to the corrected frame."""
+        if self.graph is None:
+            return np.zeros(3)
+        last = self.graph.poses[-1]
+        front = self.keys[-1].pose
+        return compose(last, relative(front, np.zeros(3)))
+
+    def correct(self, pose: np.ndarray) -> np.ndarray:
+        """A front-end pose (3,) in the corrected frame."""
+        return compose(self.correction(), np.asarray(pose, dtype=np.float64))

@@ -1,0 +1,125 @@
+"""Pose graph of key scans on gtsam's iSAM2: sequential edges, loop-closure edges, incremental updates.
+
+Nodes are key-scan base poses (x, y m, yaw rad) in the map frame. Node 0 carries a prior (the map frame's
+anchor). Edges are relative poses ``relative(a, b)`` (b in a's frame, :func:`glassmap.pose.motion.relative`)
+with a 3x3 covariance of that relative pose's (x, y, yaw) components; gtsam expects the covariance in the
+tangent space of Pose2 at the measurement (x, y rotated into b's frame), which :func:`to_tangent` converts
+to. Each ``add_*`` call is one iSAM2 update (relinearisation as iSAM2 decides); a loop closure is followed
+by extra iterations (:meth:`PoseGraph.add_loop`) so the correction is fully propagated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from glassmap.pose.motion import compose
+
+
+class PoseGraphError(RuntimeError):
+    """An edge refers to a node that does not exist, or the solver failed."""
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One edge: from node a to node b, relative pose (3,) of b in a's frame, covariance (3, 3) of its
+    (x, y, yaw) components, kind: "sequential" or "loop"."""
+
+    a: int
+    b: int
+    rel: np.ndarray
+    cov: np.ndarray
+    kind: str
+
+
+def to_tangent(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariance of a relative pose's (x, y, yaw) components -> that of gtsam's Pose2 local coordinates
+    at ``rel`` (rel composed with Exp(xi): the translation part of xi is in the frame of rel's end)."""
+    c, s = np.cos(rel[2]), np.sin(rel[2])
+    g = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = g @ cov @ g.T
+    return 0.5 * (out + out.T)
+
+
+def _noise(cov: np.ndarray):
+    return gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=np.float64))
+
+
+class PoseGraph:
+    """Key-scan poses, their edges, and the iSAM2 solution (``poses``, ``marginal``)."""
+
+    def __init__(self, first_pose: np.ndarray, first_cov: np.ndarray, loop_iterations: int = 3) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.001)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        self.loop_iterations = loop_iterations
+        self.edges: list[Edge] = []
+        self._poses = np.asarray(first_pose, dtype=np.float64).reshape(1, 3).copy()
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._poses[0]), _noise(first_cov)))
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose2(*self._poses[0]))
+        self._isam.update(g, v)
+
+    def __len__(self) -> int:
+        return self._poses.shape[0]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 3) the current solution (a copy)."""
+        return self._poses.copy()
+
+    def add_node(self, rel: np.ndarray, cov: np.ndarray) -> int:
+        """Append a node at ``rel`` (relative pose, (3,)) from the last node with covariance ``cov`` (3, 3) of
+        rel's (x, y, yaw); returns its index."""
+        a = len(self) - 1
+        b = a + 1
+        rel = np.asarray(rel, dtype=np.float64)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
+        guess = compose(self._poses[a], rel)
+        v = gtsam.Values()
+        v.insert(b, gtsam.Pose2(*guess))
+        self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "sequential"))
+        self._isam.update(g, v)
+        self._poses = np.vstack([self._poses, guess])
+        if len(self.edges) % 50 == 0:  # the chain alone changes little: read the solution back now and then
+            self._read()
+        return b
+
+    def add_loop(self, a: int, b: int, rel: np.ndarray, cov: np.ndarray) -> None:
+        """Add a loop-closure edge (node b at ``rel`` in node a's frame, covariance ``cov``) and re-solve."""
+        n = len(self)
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise PoseGraphError(f"loop edge {a} -> {b} needs two different existing nodes (0..{n - 1})")
+        rel = np.asarray(rel, dtype=np.float64)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
+        self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "loop"))
+        self._isam.update(g, gtsam.Values())
+        for _ in range(self.loop_iterations):
+            self._isam.update()
+        self._read()
+
+    def _read(self) -> None:
+        est = self._isam.calculateEstimate()
+        n = len(self)
+        out = np.empty((n, 3))
+        for i in range(n):  # N small objects; called after loop closures and every 50 nodes, not per scan
+            p = est.atPose2(i)
+            out[i] = (p.x(), p.y(), p.theta())
+        self._poses = out
+
+    def refresh(self) -> np.ndarray:
+        """Read the full solution back from iSAM2 and return it (N, 3)."""
+        self._read()
+        return self.poses
+
+    def marginal(self, i: int) -> np.ndarray:
+        """Marginal covariance (3, 3) of node i in its own tangent space (x, y in the node's frame, yaw)."""
+        if not 0 <= i < len(self):
+            raise PoseGraphError(f"no node {i} (0..{len(self) - 1})")
+        return np.asarray(self._isam.marginalCovariance(i))

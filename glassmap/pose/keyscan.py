@@ -1,0 +1,31 @@
+"""What the pose estimator hands the pose graph for each key scan (see ``PoseEstimator.last_key_scan``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class KeyScan:
+    """One key scan as the front end placed it.
+
+    seq / stamp (s, host time): the scan's; pose (3,): corrected base pose (x, y m, yaw rad) in the front
+    end's map frame; cov (3, 3): the filter's covariance relative to the map built so far (m^2, rad^2);
+    odom (3,): the wheel-odometry pose (odom frame) at ``stamp``; fused_dims: directions of the scan match
+    fused into the pose (0: placed by odometry alone); written: the scan was integrated into the map;
+    angles (n,) rad, ranges (n,) m: the scan as matched (laser frame, after any de-skew); range_max (m);
+    mount (3,): laser pose in the base frame."""
+
+    seq: int
+    stamp: float
+    pose: np.ndarray
+    cov: np.ndarray
+    odom: np.ndarray
+    fused_dims: int
+    written: bool
+    angles: np.ndarray
+    ranges: np.ndarray
+    range_max: float
+    mount: np.ndarray

@@ -1,0 +1,107 @@
+"""Loop closure on synthetic worlds: a drifted loop is closed with correct closures only; a featureless
+corridor driven out and back gives no closure (its long axis is not observed); a closure needs a second,
+agreeing one."""
+
+import numpy as np
+
+from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.pose.keyscan import KeyScan
+from glassmap.pose.loop_closure import Candidate, LoopCloser
+from glassmap.pose.motion import compose, relative
+from glassmap.types import LaserGeometry
+from tests.pose.synth import box, corridor, raycast
+
+MOUNT = np.array([0.1, 0.0, 0.0])
+GEOM = LaserGeometry()
+
+
+def _ring() -> np.ndarray:
+    """A 20 x 12 m ring corridor round a 14 x 6 m block, with recesses that break its symmetry."""
+    return np.concatenate([box(-10.0, -6.0, 10.0, 6.0), box(-7.0, -3.0, 7.0, 3.0), box(-4.0, -6.0, -3.0, -5.5),
+                           box(2.0, 5.4, 3.5, 6.0), box(9.4, -1.0, 10.0, 0.5), box(-10.0, 1.0, -9.5, 1.8)])
+
+
+def _route(waypoints: list[tuple[float, float]], step: float = 0.25) -> np.ndarray:
+    """Poses every ``step`` m along straight legs, turning on the spot (10 deg steps) at the corners."""
+    out = []
+    for (x0, y0), (x1, y1) in zip(waypoints[:-1], waypoints[1:]):
+        yaw = np.arctan2(y1 - y0, x1 - x0)
+        if out:
+            last = out[-1][2]
+            turn = np.angle(np.exp(1j * (yaw - last)))
+            for k in range(1, int(abs(turn) / np.radians(10))):
+                out.append(np.array([x0, y0, last + np.sign(turn) * k * np.radians(10)]))
+        n = int(np.hypot(x1 - x0, y1 - y0) / step)
+        out += [np.array([x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n, yaw]) for i in range(n)]
+    return np.array(out)
+
+
+def _keys(segments: np.ndarray, truth: np.ndarray, yaw_bias: float, along_bias: float = 0.0) -> list[KeyScan]:
+    """Key scans seen from the true poses, placed by a front end that turns ``yaw_bias`` rad too much per
+    key scan and overestimates each step by ``along_bias`` (a share)."""
+    rng = np.random.default_rng(3)
+    front = [truth[0]]
+    for a, b in zip(truth[:-1], truth[1:]):
+        rel = relative(a, b)
+        rel = rel * np.array([1.0 + along_bias, 1.0, 1.0]) + np.array([0.0, 0.0, yaw_bias])
+        front.append(compose(front[-1], rel))
+    keys = []
+    for i, (t, f) in enumerate(zip(truth, front)):
+        r = raycast(segments, compose(t, MOUNT), GEOM.angles, GEOM.range_max)
+        r = r + rng.normal(0.0, 0.01, r.shape)
+        keys.append(KeyScan(seq=i, stamp=0.5 * i, pose=f, cov=np.eye(3) * 1e-6, odom=np.zeros(3), fused_dims=3,
+                            written=True, angles=GEOM.angles, ranges=r, range_max=GEOM.range_max, mount=MOUNT))
+    return keys
+
+
+def _run(keys: list[KeyScan], loop_closure: bool = True) -> GraphBackEnd:
+    be = GraphBackEnd(BackEndConfig(loop_closure=loop_closure))
+    for k in keys:
+        be.add(k)
+    return be
+
+
+def test_drifted_loop_is_closed_with_correct_closures_only():
+    truth = _route([(-8.5, -4.5), (8.5, -4.5), (8.5, 4.5), (-8.5, 4.5), (-8.5, -4.5), (0.0, -4.5)])
+    keys = _keys(_ring(), truth, yaw_bias=np.radians(0.012))
+    front = np.array([k.pose for k in keys])
+    assert np.hypot(*(front[-1, :2] - truth[-1, :2])) > 0.15  # the front end's drift at the end
+
+    be = _run(keys)
+    assert len(be.closures) >= 2
+    for c in be.closures:  # every accepted closure is right: within 3 cm and 0.3 deg of the truth
+        tr = relative(truth[c.anchor], truth[c.node])
+        assert np.hypot(*(tr[:2] - c.pose[:2])) < 0.03
+        assert abs(tr[2] - c.pose[2]) < np.radians(0.3)
+    final = be.poses()
+    assert np.hypot(*(final[-1, :2] - truth[-1, :2])) < 0.05
+    np.testing.assert_allclose(be.correct(keys[-1].pose), final[-1], atol=1e-9)
+
+    off = _run(keys, loop_closure=False)
+    assert not off.closures
+    np.testing.assert_allclose(off.poses(), front, atol=1e-6)
+
+
+def test_featureless_corridor_out_and_back_gives_no_closure():
+    segs = corridor(length=140.0, half_width=1.0)
+    truth = _route([(-20.0, 0.0), (5.0, 0.0), (-20.0, 0.0)])
+    keys = _keys(segs, truth, yaw_bias=0.0, along_bias=0.01)  # 1 % too far on every step
+    be = _run(keys)
+    assert be.closer.stats.checks > 0
+    assert not be.closures
+    assert be.closer.stats.rejected.get("unconstrained direction", 0) > 0
+
+
+def test_a_candidate_is_accepted_only_when_a_second_one_agrees():
+    closer = LoopCloser()
+    poses = np.zeros((10, 3))
+
+    def cand(node, travel, front, pose):
+        return Candidate(node, travel, np.asarray(front, float), 0, 0, np.asarray(pose, float), np.eye(3) * 1e-4, 0.9)
+
+    a = cand(4, 30.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
+    good = cand(6, 30.5, (0.5, 0.0, 0.0), (1.5, 0.01, 0.0))  # 1 cm off: agrees
+    bad = cand(6, 30.5, (0.5, 0.0, 0.0), (1.6, 0.0, 0.0))  # 10 cm off: the two matches disagree
+    assert closer.agree(a, good, poses)
+    assert not closer.agree(a, bad, poses)
+    assert not closer.agree(a, cand(6, 30.5, (0.5, 0.0, 0.0), (1.5, 0.0, np.radians(1.0))), poses)
