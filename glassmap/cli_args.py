@@ -41,6 +41,12 @@ def add_worlds(p: argparse.ArgumentParser, default: str) -> None:
                    help="comma-separated built-in worlds or .toml files (default: %(default)s)")
 
 
+def add_loop_closure(p: argparse.ArgumentParser, default: bool) -> None:
+    p.add_argument("--loop-closure", action=argparse.BooleanOptionalAction, default=default,
+                   help="run the pose graph with loop closure behind the estimator (glassmap/pose/backend.py) "
+                   "(default: %(default)s)")
+
+
 def add_seed(p: argparse.ArgumentParser, default: int = 0, what: str = "random seed") -> None:
     p.add_argument("--seed", type=int, default=default, help=f"{what} (default: %(default)s)")
 

@@ -100,6 +100,7 @@ class Runtime:
         config.validate()
         self.config = config
         self.processor = processor or MappingProcessor(config.mapping)
+        self._graph_version = 0  # the last pose-graph snapshot recorded
         self.hokuyo_options = dict(hokuyo_options or {})
         self.pioneer_options = dict(pioneer_options or {})
         self.driver = driver
@@ -330,6 +331,7 @@ class Runtime:
             maps = await self.stage.call(self.processor.copy_maps)
             if publish and self.sink is not None:
                 await self._publish_maps(maps)
+                self._publish_graph()
             if export:
                 await self._export_maps(maps)
 
@@ -350,6 +352,16 @@ class Runtime:
             log.error("map messages not recorded: %s", exc)
             return
         self.sink.maps(ns, occ, glass)
+
+    def _publish_graph(self) -> None:
+        """The pose graph's trajectory and corrected map, when a loop closure has produced a new one."""
+        graph = getattr(self.processor, "graph", None)
+        if graph is None:
+            return
+        snap = graph.snapshot()
+        if snap.version > self._graph_version:
+            self._graph_version = snap.version
+            self.sink.pose_graph(self.time_base.ns(time.monotonic()), snap)
 
     async def _shutdown(self, tasks: list[asyncio.Task], stopper: asyncio.Task) -> None:
         """Cancel the driver (no further commands), stop the robot, then cancel the device and export tasks."""
@@ -391,6 +403,19 @@ class Runtime:
                 self.summary.exports = await asyncio.to_thread(maps.export, out.out_dir, self.export_stem)
             except Exception as exc:
                 log.error("final map export failed: %s", exc)
+            await self._finish_graph()
+
+    async def _finish_graph(self) -> None:
+        """With loop closure: wait for the pose graph, record its optimised trajectory and corrected map."""
+        if getattr(self.processor, "graph", None) is None:
+            return
+        try:
+            snap = await asyncio.to_thread(self.processor.finish_graph)
+            if self.sink is not None:
+                self.sink.pose_graph(self.time_base.ns(time.monotonic()), snap)
+            log.info("pose graph: %d key scans, %d loop closures", len(snap.stamps), snap.closures)
+        except Exception as exc:
+            log.error("pose graph not recorded: %s", exc)
 
     async def _close_devices(self) -> None:
         """Robot stopped, motors disabled, CLOSE (PioneerClient.close); laser QT (HokuyoClient.close)."""

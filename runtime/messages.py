@@ -61,6 +61,11 @@ TOPICS: dict[str, str] = {
     "/glass/map": "foxglove_msgs/msg/Grid",
     "/rosout": "rcl_interfaces/msg/Log",
     "/cmd_vel": "geometry_msgs/msg/Twist",
+    # with mapping.loop_closure: the pose corrected by the pose graph (per scan), the optimised key-scan
+    # trajectory and the occupancy grid re-integrated at it (after each loop closure and at the end)
+    "/pose/corrected": "geometry_msgs/msg/PoseStamped",
+    "/pose_graph/path": "nav_msgs/msg/Path",
+    "/map/corrected": "nav_msgs/msg/OccupancyGrid",
     "/raw/laser": RAW_BYTES_TYPE,
     "/raw/base": RAW_BYTES_TYPE,
 }
@@ -134,6 +139,16 @@ def pose_msg(x: float, y: float, yaw: float):
     T = _T()
     return T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
                                        orientation=quaternion(float(yaw)))
+
+
+def pose_stamped_msg(x: float, y: float, yaw: float, ns: int, frame_id: str = "map"):
+    return _T()["geometry_msgs/msg/PoseStamped"](header=header(ns, frame_id), pose=pose_msg(x, y, yaw))
+
+
+def path_msg(stamps_ns: np.ndarray, poses: np.ndarray, ns: int, frame_id: str = "map"):
+    """nav_msgs/Path of poses (N, 3) (x, y, yaw) stamped ``stamps_ns`` (N,)."""
+    return _T()["nav_msgs/msg/Path"](header=header(ns, frame_id),
+                                     poses=[pose_stamped_msg(*p, int(t), frame_id) for t, p in zip(stamps_ns, poses)])
 
 
 def cov6(cov3: np.ndarray) -> np.ndarray:

@@ -51,6 +51,12 @@ class MappingProcessor:
                                              weights=mapping.classifier_weights or None)
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"
+        self.graph = None  # the pose-graph worker (mapping.loop_closure)
+        if mapping.loop_closure:
+            from glassmap.pose.backend import BackEndConfig
+            from runtime.graph_worker import GraphWorker
+
+            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy)
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)
@@ -88,12 +94,25 @@ class MappingProcessor:
         key = self.estimator.stats.last_keyframe
         beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key)
         t2 = time.perf_counter()
+        corrected = None
+        if self.graph is not None:
+            if key and self.estimator.last_key_scan is not None:
+                self.graph.submit(self.estimator.last_key_scan)
+            from glassmap.pose.motion import compose
+
+            corrected = compose(self.graph.correction(), est.pose)
         self.scans += 1
         st = self.estimator.stats
         timings = {"pose": st.t_core, "likelihood_field": st.t_field, "occupancy": st.t_integrate,
                    "pose_total": t1 - t0, "glass": t2 - t1, "total": t2 - t0, "cpu": time.thread_time() - c0}
         return ScanResult(scan=scan, estimate=est, laser_pose=laser_pose, p_glass=beams.p_glass,
-                          odom=self.latest_odom, timings=timings)
+                          odom=self.latest_odom, timings=timings, corrected_pose=corrected)
+
+    def finish_graph(self, timeout: float = 60.0):
+        """Wait for the pose-graph worker to take in every key scan and return its final
+        :class:`~runtime.graph_worker.GraphSnapshot` (optimised trajectory + corrected grid); None without
+        loop closure."""
+        return None if self.graph is None else self.graph.finish(timeout)
 
     def copy_maps(self):
         """Copies of the maps (a picklable :class:`~glassmap.mapping.MapCopy`) to publish or export elsewhere:

@@ -52,6 +52,7 @@ class ReplayResult:
     seen_from: str = ""  # where the scored cells came from: the simulator's record (a file) or the map
     notes: list[str] = field(default_factory=list)  # what the user should know about this replay
     final_pose: tuple[float, float, float] | None = None
+    pose_graph: object | None = None  # with mapping.loop_closure: the final runtime.graph_worker.GraphSnapshot
 
     @property
     def scans_per_second(self) -> float:
@@ -241,8 +242,12 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     res.data_time = float(last - first) if first is not None else 0.0
     est = proc.estimator.estimate()
     res.final_pose = (est.x, est.y, est.yaw)
+    res.pose_graph = proc.finish_graph()
     if out_dir:
         res.exports = proc.export(out_dir, stem)
+        if res.pose_graph is not None and res.pose_graph.grid is not None:
+            pgm, yaml = res.pose_graph.grid.save_pgm_yaml(str(Path(out_dir) / f"{stem}_corrected"))
+            res.exports.update(corrected_pgm=pgm, corrected_yaml=yaml)
     if world:
         from glassmap.sim.world import load_world
         from runtime.evaluate import evaluate_map

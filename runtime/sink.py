@@ -81,6 +81,8 @@ class RecordingSink:
             return
         ns = self.tb.ns(r.scan.stamp)
         self.rec.write("/pose", M.pose_with_covariance_msg(r.estimate, ns, self.map_frame), ns)
+        if r.corrected_pose is not None:
+            self.rec.write("/pose/corrected", M.pose_stamped_msg(*r.corrected_pose, ns, self.map_frame), ns)
         if r.p_glass is not None:
             self.rec.write("/glass/beams", M.laser_scan_msg(r.scan, ns, self.laser_frame, values=r.p_glass), ns)
         if r.odom is not None:
@@ -92,6 +94,16 @@ class RecordingSink:
             tf = M.transform_stamped(ns, self.base_frame, self.laser_frame, *mount)
             self.rec.write("/tf_static", M.tf_msg([tf]), ns)
             self._static_sent = True
+
+    def pose_graph(self, stamp_ns: int, snapshot) -> None:
+        """/pose_graph/path (the optimised key-scan trajectory) and /map/corrected (the grid re-integrated at
+        it) of a :class:`~runtime.graph_worker.GraphSnapshot`."""
+        self.rec.write("/pose_graph/path", M.path_msg([self.tb.ns(t) for t in snapshot.stamps], snapshot.poses,
+                                                      stamp_ns, self.map_frame), stamp_ns)
+        if snapshot.grid is not None:
+            g = snapshot.grid.grid
+            self.rec.write("/map/corrected", M.occupancy_grid_msg(snapshot.grid.probability(), tuple(g.origin),
+                                                                  g.resolution, stamp_ns, self.map_frame), stamp_ns)
 
     def maps(self, stamp_ns: int, occupancy_cdr: bytes, glass_cdr: bytes) -> None:
         """/map and /glass/map, serialised elsewhere (see :class:`runtime.map_worker.MapWorker`)."""

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
 from glassmap.pose.graph import PoseGraph
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
@@ -105,6 +106,20 @@ class GraphBackEnd:
         last = self.graph.poses[-1]
         front = self.keys[-1].pose
         return compose(last, relative(front, np.zeros(3)))
+
+    def stamps(self) -> np.ndarray:
+        """(N,) stamps (s) of the key scans (the nodes)."""
+        return np.array([k.stamp for k in self.keys])
+
+    def corrected_grid(self, params: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
+                       poses: np.ndarray | None = None) -> OccupancyGrid:
+        """A new occupancy grid of every key scan integrated at its optimised pose (``poses``, default the
+        current solution): the map that follows the corrected trajectory."""
+        poses = self.poses() if poses is None else poses
+        occ = OccupancyGrid(MapGrid(resolution), params)
+        for p, k in zip(poses, self.keys):
+            occ.integrate(compose(p, k.mount), k.angles, k.ranges, k.range_max)
+        return occ
 
     def correct(self, pose: np.ndarray) -> np.ndarray:
         """A front-end pose (3,) in the corrected frame."""

@@ -11,7 +11,7 @@ import json
 import os
 import sys
 
-from glassmap.cli_args import add_no_progress, add_out, add_seed, add_seeds, add_world, add_worlds
+from glassmap.cli_args import add_loop_closure, add_no_progress, add_out, add_seed, add_seeds, add_world, add_worlds
 
 DEFAULT_WORLDS = ["office", "room", "glass-corridor", "lobby"]
 
@@ -50,6 +50,7 @@ def register(subparsers) -> None:
     e.add_argument("--no-return-range", type=float, default=None,
                    help="how far (m) a no-return beam (+inf) clears free space in the estimator's grid "
                    "(default: OccupancyParams' default)")
+    add_loop_closure(e, default=False)
     add_out(e, "out/pose", "output directory for pose_eval.csv / .json")
     add_no_progress(e)
     e.set_defaults(func=_eval)
@@ -108,18 +109,24 @@ def _eval(args: argparse.Namespace) -> int:
         if args.no_return_range < 0:
             raise SystemExit(f"--no-return-range must be >= 0 m, got {args.no_return_range}")
         cfg = replace(cfg, occupancy=replace(cfg.occupancy, no_return_range=args.no_return_range))
+    backend = None
+    if args.loop_closure:
+        from glassmap.pose.backend import BackEndConfig
+
+        backend = BackEndConfig()
     rows = []
     jobs = [(w, s) for w in worlds for s in seeds]
     for w, s in tqdm(jobs, desc="pose eval", unit="run", disable=args.no_progress):
         m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion,
-                         glass_online=online, classifier=clf)
+                         glass_online=online, classifier=clf, backend_config=backend)
         rows.append(m.as_dict())
         tqdm.write(_line(m.as_dict()))
     os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "pose_eval" + (f"_glass_{args.glass_weighting}" if oracle or online else "")
                         + ("_every_scan" if args.every_scan else "")
                         + ("_sweep" if args.sweep_motion else "") + ("_deskew" if args.deskew else "")
-                        + (f"_noret{args.no_return_range:g}" if args.no_return_range is not None else ""))
+                        + (f"_noret{args.no_return_range:g}" if args.no_return_range is not None else "")
+                        + ("_loop_closure" if args.loop_closure else ""))
     _write_csv(stem + ".csv", rows)
     with open(stem + ".json", "w") as f:
         json.dump(rows, f, indent=1)
@@ -128,12 +135,19 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _line(r: dict) -> str:
+    lc = ""
+    if r.get("lc_ate_rmse") == r.get("lc_ate_rmse"):  # a back end ran (not NaN)
+        lc = (f"\n    with loop closure: ATE {100 * r['lc_ate_rmse']:5.1f} cm online (max {100 * r['lc_ate_max']:5.1f}), "
+              f"{100 * r['lc_opt_ate_rmse']:5.1f} cm optimised (max {100 * r['lc_opt_ate_max']:5.1f}), final drift "
+              f"{100 * r['lc_final_drift']:5.1f} cm | closures {r['lc_closures']} ({r['lc_false_closures']} false) "
+              f"of {r['lc_checks']} checks | back end {r['lc_backend_ms_mean']:.1f} ms mean per key scan "
+              f"(max {r['lc_backend_ms_max']:.0f})")
     return (f"{r['world']:15s} seed {r['seed']:3d}  ATE {100 * r['ate_rmse']:5.1f} cm (max {100 * r['ate_max']:5.1f}) "
             f"drift {100 * r['final_drift']:5.1f} cm | odometry ATE {100 * r['odom_ate_rmse']:6.1f} cm drift "
             f"{100 * r['odom_final_drift']:6.1f} cm | yaw {r['yaw_rmse_deg']:.2f} deg | NEES {r['nees_mean']:5.2f} "
             f"in95 {100 * r['inside_95']:5.1f} % | sigma_xy {100 * r['sigma_xy_mean']:.1f} cm | "
             f"key scans {100 * r['key_share']:.0f} % | core {r['t_core_median_ms']:.2f} ms (key scans "
-            f"{r['t_core_key_median_ms']:.2f} ms)")
+            f"{r['t_core_key_median_ms']:.2f} ms)" + lc)
 
 
 def _write_csv(path: str, rows: list[dict]) -> None:

@@ -1,5 +1,8 @@
 """Evaluation of the pose estimator on simulated runs: trajectory error and covariance consistency.
 
+With a pose-graph back end (``backend``) also: the same errors of the corrected poses (online, and
+optimised after the run), accepted loop closures and how many of them are false against the truth.
+
 Metrics per run (positions in metres, the map frame anchored at the true start pose, so no alignment):
 ATE RMSE and max of the base position at the scan times, final drift (position error at the last scan), the
 same for raw wheel odometry (dead reckoning from the true start), mean yaw error, and the NEES
@@ -9,15 +12,18 @@ e^T P^-1 e (3 dof, x, y, yaw; ideal mean 3) with the share of scans inside the 9
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from glassmap.pose.estimator import EstimatorConfig, PoseEstimator
-from glassmap.pose.motion import compose
+from glassmap.pose.motion import compose, relative
 from glassmap.types import wrap_angle
 
 CHI2_3DOF_95 = 7.815
+FALSE_CLOSURE_XY = 0.05  # m: a loop closure further than this from the truth counts as false
+FALSE_CLOSURE_YAW = float(np.radians(1.0))
 
 
 @dataclass
@@ -25,7 +31,11 @@ class Trajectory:
     """Per-scan estimates of one run: stamps (S,), poses (S, 3) base in the map frame, covs (S, 3, 3),
     truth (S, 3), odom (S, 3) raw odometry mapped into the map frame from the true start pose,
     t_core (S,) seconds of prediction + matching + covariance + fusion, t_field / t_integrate (S,), key (S,)
-    bool: key scans (matched and integrated; see EstimatorConfig.keyframe_*)."""
+    bool: key scans (matched and integrated; see EstimatorConfig.keyframe_*). With a pose-graph back end:
+    corrected (S, 3) each scan's pose as the back end corrected it at that time (online), optimised (S, 3)
+    after the whole run (each scan moved with its last key scan), closures the accepted loop closures,
+    closure_truth_error (C, 2) each closure's error against the truth (m, rad), t_backend (K,) seconds of the
+    back end per key scan, closure_checks: loop-closure matches tried."""
 
     stamps: np.ndarray
     poses: np.ndarray
@@ -39,6 +49,12 @@ class Trajectory:
     no_match: int
     gated: int
     key: np.ndarray
+    corrected: np.ndarray | None = None
+    optimised: np.ndarray | None = None
+    closures: list | None = None
+    closure_truth_error: np.ndarray | None = None
+    t_backend: np.ndarray | None = None
+    closure_checks: int = 0
 
 
 @dataclass
@@ -65,6 +81,18 @@ class RunMetrics:
     t_core_key_median_ms: float  # over key scans only (prediction + matching + covariance + fusion)
     t_field_mean_ms: float
     t_integrate_mean_ms: float
+    # with the pose graph (``--loop-closure``; NaN / 0 without): online = each scan as corrected then,
+    # optimised = after the whole run; false closures: off the truth by > 5 cm or > 1 deg
+    lc_ate_rmse: float = float("nan")
+    lc_ate_max: float = float("nan")
+    lc_final_drift: float = float("nan")
+    lc_opt_ate_rmse: float = float("nan")
+    lc_opt_ate_max: float = float("nan")
+    lc_checks: int = 0
+    lc_closures: int = 0
+    lc_false_closures: int = 0
+    lc_backend_ms_mean: float = float("nan")
+    lc_backend_ms_max: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -72,7 +100,7 @@ class RunMetrics:
 
 def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = True, glass_oracle: bool = False,
                   on_scan=None, progress: bool = False, occupancy=None, world=None, glass_online: bool = False,
-                  classifier=None) -> tuple[Trajectory, PoseEstimator]:
+                  classifier=None, backend=None) -> tuple[Trajectory, PoseEstimator]:
     """Feed a :class:`glassmap.sim.dataset.SimRun` through a fresh :class:`PoseEstimator`.
 
     The estimator starts at the true pose of the first odometry sample (that anchors the map frame), with
@@ -84,7 +112,9 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     ``world``: the run's world (a :class:`~glassmap.sim.world.World`, a name or a path) for the oracle
     (default: ``run.world_name``, a built-in name). ``glass_online``: build the glass map online as the
     runtime does (a :class:`~glassmap.mapping.GlassMapper` with ``classifier`` on the estimator's grid, its
-    ``"glass"`` layer read by ``EstimatorConfig.glass_weighting``; every scan).
+    ``"glass"`` layer read by ``EstimatorConfig.glass_weighting``; every scan). ``backend``: a
+    :class:`~glassmap.pose.backend.GraphBackEnd` fed every key scan (synchronously here: the front end does
+    not depend on it, so the results are those of the runtime's worker).
     """
     mount = tuple(run.params.get("robot", {}).get("laser_offset", (0.1, 0.0, 0.0)))
     start = np.asarray(run.odom_true_poses[0], dtype=np.float64)
@@ -101,6 +131,10 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     poses, covs = np.zeros((s, 3)), np.zeros((s, 3, 3))
     t_core, t_field, t_int = np.zeros(s), np.zeros(s), np.zeros(s)
     key = np.zeros(s, dtype=bool)
+    corrected = np.zeros((s, 3)) if backend is not None else None
+    last_key = np.zeros(s, dtype=np.int64)
+    key_scan: list[int] = []
+    t_back: list[float] = []
     j = 0
     it = range(s)
     if progress:
@@ -118,6 +152,14 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
         poses[i], covs[i] = e.pose, e.covariance
         st = est.stats
         t_core[i], t_field[i], t_int[i], key[i] = st.t_core, st.t_field, st.t_integrate, st.last_keyframe
+        if backend is not None:
+            if st.last_keyframe:
+                t = time.perf_counter()
+                backend.add(est.last_key_scan)
+                t_back.append(time.perf_counter() - t)
+                key_scan.append(i)
+            last_key[i] = len(backend) - 1
+            corrected[i] = backend.correct(e.pose)
         if on_scan is not None:
             on_scan(i, scan, e, est)
     odom_map = _odometry_in_map(run, start)
@@ -125,7 +167,28 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
                       odom=odom_map, t_core=t_core, t_field=t_field, t_integrate=t_int,
                       matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated,
                       key=key)
+    if backend is not None:
+        _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, t_back)
     return traj, est
+
+
+def _add_backend(traj: Trajectory, backend, run, key_scan: np.ndarray, last_key: np.ndarray, corrected: np.ndarray,
+                 t_back: list[float]) -> None:
+    """Fill the back end's part of ``traj``: optimised poses (every scan moved with its last key scan) and
+    each closure's error against the truth."""
+    opt = backend.poses()
+    front = np.array([k.pose for k in backend.keys])
+    traj.corrected = corrected
+    traj.optimised = np.array([compose(opt[k], relative(front[k], p)) for k, p in zip(last_key, traj.poses)])
+    traj.closures = list(backend.closures)
+    truth = run.scan_true_poses[key_scan]
+    err = np.zeros((len(backend.closures), 2))
+    for n, c in enumerate(backend.closures):  # a handful per run
+        tr = relative(truth[c.anchor], truth[c.node])
+        err[n] = (np.hypot(tr[0] - c.pose[0], tr[1] - c.pose[1]), abs(float(wrap_angle(tr[2] - c.pose[2]))))
+    traj.closure_truth_error = err
+    traj.t_backend = np.asarray(t_back)
+    traj.closure_checks = backend.closer.stats.checks
 
 
 def _odometry_in_map(run, start: np.ndarray) -> np.ndarray:
@@ -196,6 +259,17 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
     steps = np.diff(traj.truth[:, :2], axis=0)
     sig = np.sqrt(np.linalg.eigvalsh(traj.covs[:, :2, :2])[:, 1])
     s = len(traj.stamps)
+    lc = {}
+    if traj.corrected is not None:
+        dc = np.hypot(*(traj.corrected[:, :2] - traj.truth[:, :2]).T)
+        dopt = np.hypot(*(traj.optimised[:, :2] - traj.truth[:, :2]).T)
+        ce = traj.closure_truth_error
+        tb = traj.t_backend if traj.t_backend is not None and traj.t_backend.size else np.zeros(1)
+        lc = dict(lc_ate_rmse=float(np.sqrt(np.mean(dc ** 2))), lc_ate_max=float(dc.max()), lc_final_drift=float(dc[-1]),
+                  lc_opt_ate_rmse=float(np.sqrt(np.mean(dopt ** 2))), lc_opt_ate_max=float(dopt.max()),
+                  lc_checks=int(traj.closure_checks), lc_closures=len(traj.closures),
+                  lc_false_closures=int(np.sum((ce[:, 0] > FALSE_CLOSURE_XY) | (ce[:, 1] > FALSE_CLOSURE_YAW))),
+                  lc_backend_ms_mean=float(tb.mean() * 1e3), lc_backend_ms_max=float(tb.max() * 1e3))
     return RunMetrics(
         world=run.world_name, route=run.route_name, seed=int(run.seed), scans=s,
         length_m=float(np.hypot(steps[:, 0], steps[:, 1]).sum()),
@@ -209,15 +283,16 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         key_share=float(traj.key.mean()) if s else 0.0,
         t_core_key_median_ms=float(np.median(traj.t_core[traj.key]) * 1e3) if traj.key.any() else 0.0,
         t_field_mean_ms=float(np.mean(traj.t_field) * 1e3),
-        t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3))
+        t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3), **lc)
 
 
 def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConfig | None = None, *,
                  causal: bool = True, glass_oracle: bool = False, progress: bool = False,
                  run_cache: dict | None = None, sweep_motion: bool = False, glass_online: bool = False,
-                 classifier=None) -> RunMetrics:
+                 classifier=None, backend_config=None) -> RunMetrics:
     """Simulate (or take from ``run_cache``) one run and evaluate the estimator on it. ``sweep_motion``: the
-    simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``)."""
+    simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``).
+    ``backend_config``: also run the pose-graph back end (:class:`~glassmap.pose.backend.BackEndConfig`)."""
     from glassmap.sim.dataset import simulate_run
 
     key = (world, route, seed, sweep_motion)
@@ -226,6 +301,11 @@ def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConf
         run = simulate_run(world, route, seed=seed, sweep_motion=sweep_motion)
         if run_cache is not None:
             run_cache[key] = run
+    backend = None
+    if backend_config is not None:
+        from glassmap.pose.backend import GraphBackEnd
+
+        backend = GraphBackEnd(backend_config, (config or EstimatorConfig()).likelihood.sigma_hit)
     traj, _ = run_estimator(run, config, causal=causal, glass_oracle=glass_oracle, progress=progress, world=world,
-                            glass_online=glass_online, classifier=classifier)
+                            glass_online=glass_online, classifier=classifier, backend=backend)
     return metrics(traj, run)
