@@ -4,9 +4,12 @@ The front end (:class:`~glassmap.pose.estimator.PoseEstimator`) keeps matching e
 builds; the back end takes each key scan it hands over (``PoseEstimator.last_key_scan``) and
 
 * appends a node to the :class:`~glassmap.pose.graph.PoseGraph` with a *sequential* edge from the previous
-  key scan: the front end's relative pose (odometry fused with scan-to-map matching), with the covariance
-  wheel odometry would have over that motion (``MotionNoise``; the matches make the relative pose better
-  than that locally, but the map they match against drifts, and this is the error a loop must spread);
+  key scan: the front end's relative pose. Its covariance is the wheel-odometry noise of that motion
+  (``MotionNoise``) and, when both key scans were placed by a scan match (a *scan-match* edge), fused
+  (information sum) with ``match_scale`` times the two poses' filter covariances carried through the
+  relative pose (:func:`relative_covariance`; they are relative to the map built so far, which is what
+  keeps consecutive key scans consistent, and large along directions a scan did not constrain, e.g. along
+  a corridor, where odometry then dominates);
 * files it into the open :class:`~glassmap.pose.submaps.Submap`;
 * every few key scans asks the :class:`~glassmap.pose.loop_closure.LoopCloser` for closures against older
   submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves).
@@ -32,10 +35,12 @@ from glassmap.pose.submaps import SubmapConfig, SubmapStore
 
 @dataclass(frozen=True)
 class BackEndConfig:
-    """motion: the odometry noise model of sequential edges; min_sigma: (x, y, yaw) standard deviations
+    """motion: the odometry noise model of odometry edges; match_scale: multiplies the covariance of
+    scan-match edges (see the module docstring); min_sigma: (x, y, yaw) standard deviations
     added to every sequential edge (m, m, rad); loop_closure: on/off and its settings; submaps."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
+    match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
     loop_closure: bool = True
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
@@ -51,6 +56,23 @@ class Closure:
     pose: np.ndarray
     cov: np.ndarray
     stamp: float
+
+
+def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of ``relative(a, b)``'s (x, y, yaw) for poses a, b (3,) with independent errors of
+    covariances cov_a, cov_b (map frame, additive x, y, yaw)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = np.asarray(b[:2], dtype=np.float64) - np.asarray(a[:2], dtype=np.float64)
+    rt = np.array([[c, s], [-s, c]])
+    ja = np.zeros((3, 3))
+    ja[:2, :2] = -rt
+    ja[:2, 2] = np.array([[-s, c], [-c, -s]]) @ d
+    ja[2, 2] = -1.0
+    jb = np.zeros((3, 3))
+    jb[:2, :2] = rt
+    jb[2, 2] = 1.0
+    out = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
+    return 0.5 * (out + out.T)
 
 
 class GraphBackEnd:
@@ -71,14 +93,18 @@ class GraphBackEnd:
     def add(self, key: KeyScan) -> list[Closure]:
         """Add one key scan; returns the loop closures accepted with it."""
         if self.graph is None:
-            self.graph = PoseGraph(key.pose, np.diag([1e-8, 1e-8, 1e-8]))
+            self.graph = PoseGraph(key.pose, np.diag([1e-6, 1e-6, 1e-6]))
             node = 0
             self.travel.append(0.0)
         else:
             prev = self.keys[-1]
             rel = relative(prev.pose, key.pose)
             dt = max(key.stamp - prev.stamp, 0.0)
-            cov = self.config.motion.covariance(rel, dt) + np.diag(np.square(self.config.min_sigma))
+            floor = np.diag(np.square(self.config.min_sigma))
+            cov = self.config.motion.covariance(rel, dt) + floor
+            if key.fused_dims and prev.fused_dims:  # both placed by matches: fuse with their relative pose
+                m = self.config.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
+                cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
             node = self.graph.add_node(rel, cov)
             self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
         self.keys.append(key)

@@ -54,6 +54,7 @@ class PoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.001)
         params.relinearizeSkip = 1
+        params.setFactorization("QR")  # robust to the poorly conditioned long chains of tight odometry edges
         self._isam = gtsam.ISAM2(params)
         self.loop_iterations = loop_iterations
         self.edges: list[Edge] = []
