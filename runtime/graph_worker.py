@@ -2,8 +2,10 @@
 
 The processing thread hands over each key scan (:meth:`GraphWorker.submit`, never blocks; the estimator's
 ``last_key_scan``); the worker adds it to the :class:`~glassmap.pose.backend.GraphBackEnd` (iSAM2 update,
-submaps, loop-closure checks). After an accepted loop closure, and when asked at the end of a run, it
-re-integrates the key scans at the optimised poses into a corrected occupancy grid. Readers take
+submaps, loop-closure checks). After accepted loop closures (once it has caught up with the queue, at most every
+``rebuild_period`` s) and when asked at the end of a run, it
+re-integrates the key scans at the optimised poses into a corrected occupancy grid and, when the key scans
+carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`). Readers take
 snapshots under a lock: the latest correction (front-end frame -> corrected frame), the optimised
 trajectory and the corrected grid. Every key scan is processed in order (the queue is not bounded: key
 scans come at ~10 Hz and the back end takes a few ms each), so a replay of a recording reproduces the
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams
+from glassmap.mapping import GlassMapper, MapperConfig
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd
 from glassmap.pose.keyscan import KeyScan
 
@@ -30,24 +33,31 @@ log = logging.getLogger(__name__)
 @dataclass
 class GraphSnapshot:
     """What the worker has published: stamps (N,) s and poses (N, 3) of the optimised key scans (map
-    frame), the number of accepted loop closures, the corrected grid (None before the first closure or
-    :meth:`GraphWorker.finish`), and ``version`` (incremented on every new corrected grid)."""
+    frame), the number of accepted loop closures, the corrected grid and glass mapper (None before the first
+    closure or :meth:`GraphWorker.finish`; the mapper also without a mapper config), and ``version``
+    (incremented on every new corrected map)."""
 
     stamps: np.ndarray
     poses: np.ndarray
     closures: int
     grid: OccupancyGrid | None
     version: int
+    glass: GlassMapper | None = None
 
 
 class GraphWorker:
     """A :class:`GraphBackEnd` in a daemon thread (see the module docstring)."""
 
     def __init__(self, config: BackEndConfig = BackEndConfig(), sigma_hit: float = 0.03,
-                 occupancy: OccupancyParams = OccupancyParams(), resolution: float = 0.05) -> None:
+                 occupancy: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
+                 mapper: MapperConfig | None = None, classifier=None, rebuild_period: float = 5.0) -> None:
         self.backend = GraphBackEnd(config, sigma_hit)
         self.occupancy = occupancy
         self.resolution = resolution
+        self.mapper, self.classifier = mapper, classifier
+        self.rebuild_period = rebuild_period  # s: at most one corrected-map rebuild per period
+        self._dirty = False  # a closure moved the graph since the last corrected map
+        self._last_rebuild = -float("inf")
         self._queue: queue.SimpleQueue[KeyScan | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._correction = np.zeros(3)
@@ -95,12 +105,15 @@ class GraphWorker:
 
     def _publish(self, grid: bool) -> None:
         be = self.backend
+        self._dirty, self._last_rebuild = False, time.monotonic()
         poses = be.poses()
-        occ = be.corrected_grid(self.occupancy, self.resolution, poses) if grid and len(be) else None
+        occ = gm = None
+        if grid and len(be):
+            occ, gm = be.corrected_maps(self.occupancy, self.resolution, poses, self.mapper, self.classifier)
         with self._lock:
             old = self._snapshot
             self._snapshot = GraphSnapshot(be.stamps(), poses, len(be.closures), occ if grid else old.grid,
-                                           old.version + int(grid))
+                                           old.version + int(grid), gm if grid else old.glass)
 
     def _run(self) -> None:
         while True:
@@ -116,6 +129,9 @@ class GraphWorker:
                 if closures:
                     log.info("loop closure at t=%.2f: %d accepted (%d in all)", key.stamp, len(closures),
                              len(self.backend.closures))
+                    self._dirty = True
+                # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
+                if self._dirty and self._queue.empty() and time.monotonic() - self._last_rebuild >= self.rebuild_period:
                     self._publish(grid=True)
             except Exception as exc:  # reported by finish(); the scans go on without the back end
                 log.error("pose-graph worker stopped: %s: %s", type(exc).__name__, exc)

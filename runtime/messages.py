@@ -66,6 +66,7 @@ TOPICS: dict[str, str] = {
     "/pose/corrected": "geometry_msgs/msg/PoseStamped",
     "/pose_graph/path": "nav_msgs/msg/Path",
     "/map/corrected": "nav_msgs/msg/OccupancyGrid",
+    "/glass/map/corrected": "foxglove_msgs/msg/Grid",
     "/raw/laser": RAW_BYTES_TYPE,
     "/raw/base": RAW_BYTES_TYPE,
 }

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -56,7 +57,13 @@ class MappingProcessor:
             from glassmap.pose.backend import BackEndConfig
             from runtime.graph_worker import GraphWorker
 
-            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy)
+            self.graph = None  # set below, once the mapper (its config and classifier) exists
+        if mapping.loop_closure:
+            from glassmap.pose.backend import BackEndConfig
+            from runtime.graph_worker import GraphWorker
+
+            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy,
+                                     mapper=mcfg, classifier=self.mapper.classifier)
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)
@@ -97,7 +104,7 @@ class MappingProcessor:
         corrected = None
         if self.graph is not None:
             if key and self.estimator.last_key_scan is not None:
-                self.graph.submit(self.estimator.last_key_scan)
+                self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
             from glassmap.pose.motion import compose
 
             corrected = compose(self.graph.correction(), est.pose)

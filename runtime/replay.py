@@ -245,8 +245,11 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     res.pose_graph = proc.finish_graph()
     if out_dir:
         res.exports = proc.export(out_dir, stem)
-        if res.pose_graph is not None and res.pose_graph.grid is not None:
-            pgm, yaml = res.pose_graph.grid.save_pgm_yaml(str(Path(out_dir) / f"{stem}_corrected"))
+        graph = res.pose_graph
+        if graph is not None and graph.glass is not None:
+            res.exports.update({f"corrected_{k}": v for k, v in graph.glass.export(out_dir, f"{stem}_corrected").items()})
+        elif graph is not None and graph.grid is not None:
+            pgm, yaml = graph.grid.save_pgm_yaml(str(Path(out_dir) / f"{stem}_corrected"))
             res.exports.update(corrected_pgm=pgm, corrected_yaml=yaml)
     if world:
         from glassmap.sim.world import load_world

@@ -104,6 +104,10 @@ class RecordingSink:
             g = snapshot.grid.grid
             self.rec.write("/map/corrected", M.occupancy_grid_msg(snapshot.grid.probability(), tuple(g.origin),
                                                                   g.resolution, stamp_ns, self.map_frame), stamp_ns)
+        if snapshot.glass is not None:
+            g = snapshot.glass.grid
+            self.rec.write("/glass/map/corrected", M.glass_grid_msg(snapshot.glass.confidence_map(), tuple(g.origin),
+                                                                    g.resolution, stamp_ns, self.map_frame), stamp_ns)
 
     def maps(self, stamp_ns: int, occupancy_cdr: bytes, glass_cdr: bytes) -> None:
         """/map and /glass/map, serialised elsewhere (see :class:`runtime.map_worker.MapWorker`)."""

@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
+from glassmap.grid import OccupancyGrid, OccupancyParams
+from glassmap.mapping import GlassMapper, MapperConfig
+from glassmap.pose.corrected import rebuild_maps
 from glassmap.pose.graph import PoseGraph
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
@@ -137,15 +139,13 @@ class GraphBackEnd:
         """(N,) stamps (s) of the key scans (the nodes)."""
         return np.array([k.stamp for k in self.keys])
 
-    def corrected_grid(self, params: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
-                       poses: np.ndarray | None = None) -> OccupancyGrid:
-        """A new occupancy grid of every key scan integrated at its optimised pose (``poses``, default the
-        current solution): the map that follows the corrected trajectory."""
+    def corrected_maps(self, params: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
+                       poses: np.ndarray | None = None, mapper: MapperConfig | None = None, classifier=None
+                       ) -> tuple[OccupancyGrid, GlassMapper | None]:
+        """The maps that follow the corrected trajectory: every key scan re-integrated at its optimised pose
+        (``poses``, default the current solution); see :func:`glassmap.pose.corrected.rebuild_maps`."""
         poses = self.poses() if poses is None else poses
-        occ = OccupancyGrid(MapGrid(resolution), params)
-        for p, k in zip(poses, self.keys):
-            occ.integrate(compose(p, k.mount), k.angles, k.ranges, k.range_max)
-        return occ
+        return rebuild_maps(self.keys, poses, params, resolution, mapper, classifier)
 
     def correct(self, pose: np.ndarray) -> np.ndarray:
         """A front-end pose (3,) in the corrected frame."""

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from glassmap.types import Scan
+
 
 @dataclass(frozen=True)
 class KeyScan:
@@ -16,7 +18,9 @@ class KeyScan:
     odom (3,): the wheel-odometry pose (odom frame) at ``stamp``; fused_dims: directions of the scan match
     fused into the pose (0: placed by odometry alone); written: the scan was integrated into the map;
     angles (n,) rad, ranges (n,) m: the scan as matched (laser frame, after any de-skew); range_max (m);
-    mount (3,): laser pose in the base frame."""
+    mount (3,): laser pose in the base frame. scan / p_glass: the raw scan and its p(glass) per beam (NaN:
+    not classified), attached by the runtime's glass path so the glass map can be rebuilt at corrected
+    poses (None: occupancy only)."""
 
     seq: int
     stamp: float
@@ -29,3 +33,5 @@ class KeyScan:
     ranges: np.ndarray
     range_max: float
     mount: np.ndarray
+    scan: Scan | None = None
+    p_glass: np.ndarray | None = None

@@ -69,6 +69,7 @@ def test_processor_hands_key_scans_to_the_worker_and_reports_corrected_poses():
             np.testing.assert_allclose(r.corrected_pose, r.estimate.pose, atol=1e-9)  # no closure: no correction
         snap = proc.finish_graph()
         assert len(snap.stamps) == proc.estimator.stats.keyframes
+        assert snap.glass is not None and snap.glass.grid is snap.grid.grid  # the glass map rebuilt too
     finally:
         proc.graph.close()
     assert MappingProcessor(MappingConfig()).finish_graph() is None

@@ -1,0 +1,58 @@
+"""Maps that follow the pose graph: the key scans re-integrated at their optimised poses.
+
+The occupancy grid gets every key scan at its optimised laser pose. Key scans that carry their raw scan
+and p(glass) per beam (:class:`~glassmap.pose.keyscan.KeyScan` ``scan`` / ``p_glass``, attached by the
+runtime) also update a glass map with the mapper's own steps (glass hits kept occupied, registration,
+Bayesian update). The registration sigma of such a scan comes from its pose's uncertainty *relative to the
+map it registers on*: the front end's filter covariance (``KeyScan.cov``, relative to the map built so
+far), not the uncertainty relative to the map frame's anchor, which a corrected map no longer carries.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
+from glassmap.mapping import BeamGlass, GlassMapper, MapperConfig
+from glassmap.pose.keyscan import KeyScan
+from glassmap.pose.motion import compose, compose_jacobians
+
+
+def relative_sigma(key: KeyScan, ranges: np.ndarray, range_sigma: float = 0.01,
+                   range_sigma_per_m: float = 0.001) -> np.ndarray:
+    """Per-beam registration sigma (m) of a key scan from its covariance relative to the map:
+    sqrt(sigma_xy^2 + (r sigma_theta)^2 + sigma_r(r)^2) as ``PoseEstimator.registration_sigma``, with the
+    laser pose's covariance from ``key.cov`` (the mount's lever arm included). NaN for non-finite ranges."""
+    ja, _ = compose_jacobians(key.pose, key.mount)
+    cov = ja @ key.cov @ ja.T
+    sxy2 = max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0)
+    sth2 = max(float(cov[2, 2]), 0.0)
+    r_in = np.asarray(ranges, dtype=np.float64)
+    r = np.where(np.isfinite(r_in), r_in, 0.0)
+    sr = range_sigma + range_sigma_per_m * r
+    return np.where(np.isfinite(r_in), np.sqrt(sxy2 + r * r * sth2 + sr * sr), np.nan)
+
+
+def rebuild_maps(keys: Sequence[KeyScan], poses: np.ndarray, occupancy: OccupancyParams = OccupancyParams(),
+                 resolution: float = 0.05, mapper: MapperConfig | None = None, classifier=None
+                 ) -> tuple[OccupancyGrid, GlassMapper | None]:
+    """The occupancy grid of ``keys`` at ``poses`` (N, 3) (base, map frame), and with ``mapper`` (and the
+    ``classifier`` it would load otherwise; not called: p(glass) comes with the key scans) a
+    :class:`GlassMapper` whose glass map is built from the key scans that carry p(glass)."""
+    occ = OccupancyGrid(MapGrid(resolution), occupancy)
+    gm = GlassMapper(occ, mapper, classifier=classifier) if mapper is not None else None
+    for pose, k in zip(np.asarray(poses, dtype=np.float64), keys):
+        lp = compose(pose, k.mount)
+        if gm is None or k.scan is None or k.p_glass is None:
+            occ.integrate(lp, k.angles, k.ranges, k.range_max)
+            continue
+        scan = k.scan
+        gm.integrate(scan, lp)
+        use = np.isfinite(k.p_glass)
+        beams = BeamGlass(np.asarray(k.p_glass, dtype=np.float64), np.full(k.p_glass.shape, np.nan))
+        if gm.config.glass_hits_occupy or gm.config.protect == "hits":
+            gm.mark_glass_hits(beams, use, scan, lp)
+        gm.register(beams, use, scan, lp, relative_sigma(k, scan.ranges))
+    return occ, gm

@@ -1,0 +1,43 @@
+"""Maps rebuilt at corrected poses: the registration sigma is the one relative to the map; glass evidence
+carried by the key scans lands on the walls at the corrected poses."""
+
+from dataclasses import replace
+
+import numpy as np
+
+from glassmap.mapping import MapperConfig
+from glassmap.pose.corrected import rebuild_maps, relative_sigma
+from glassmap.types import Scan
+from tests.pose.test_loop_closure import GEOM, _keys, _ring, _route
+
+
+class _NeverCalled:
+    """The mapper's classifier is not used when p(glass) comes with the key scans."""
+
+    uses_echoes = False
+
+    def predict_scan(self, *args):
+        raise AssertionError("the rebuild must not classify again")
+
+
+def test_relative_sigma_is_range_noise_without_pose_error_and_grows_with_yaw():
+    k = _keys(_ring(), _route([(-8.5, -4.5), (-7.0, -4.5)]), 0.0)[0]
+    r = np.array([1.0, 10.0, np.inf])
+    s0 = relative_sigma(replace(k, cov=np.zeros((3, 3))), r)
+    np.testing.assert_allclose(s0[:2], [0.011, 0.02])
+    assert np.isnan(s0[2])
+    s1 = relative_sigma(replace(k, cov=np.diag([0.0, 0.0, 1e-4])), r)
+    assert s1[1] > 0.1 > s1[0]  # 10 mrad at 10 m: 10 cm
+
+
+def test_rebuild_puts_glass_evidence_on_the_walls_at_the_given_poses():
+    truth = _route([(-8.5, -4.5), (-5.0, -4.5)])
+    keys = [replace(k, scan=Scan(stamp=k.stamp, ranges=k.ranges, intensities=None, geometry=GEOM),
+                    p_glass=np.where(np.isfinite(k.ranges), 0.9, np.nan)) for k in _keys(_ring(), truth, 0.0)]
+    occ, gm = rebuild_maps(keys, truth, mapper=MapperConfig(), classifier=_NeverCalled())
+    conf = gm.confidence_map()
+    walls = np.isfinite(conf)
+    assert walls.sum() > 200
+    assert np.nanmedian(conf[walls]) > 0.6  # glass believed on the walls
+    occ_only, none = rebuild_maps(keys, truth)
+    assert none is None and (occ_only.occupied() == occ.occupied()).mean() > 0.99
