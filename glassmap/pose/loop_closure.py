@@ -220,7 +220,9 @@ class LoopCloser:
             self.stats.rejected_pair += 1
             return []
         # a first closure needs a partner among the recent pending candidates
-        self._pending = [p for p in self._pending if cand.travel - p.travel <= cfg.pair_max_travel]
+        kept = [p for p in self._pending if cand.travel - p.travel <= cfg.pair_max_travel]
+        self.stats.rejected_pair += len(self._pending) - len(kept)  # no partner came in time
+        self._pending = kept
         for p in reversed(self._pending):
             if cand.travel - p.travel >= cfg.pair_min_travel and self.agree(p, cand, poses):
                 self._pending = []
