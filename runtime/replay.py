@@ -53,6 +53,7 @@ class ReplayResult:
     notes: list[str] = field(default_factory=list)  # what the user should know about this replay
     final_pose: tuple[float, float, float] | None = None
     pose_graph: object | None = None  # with mapping.loop_closure: the final runtime.graph_worker.GraphSnapshot
+    corrected: object | None = None  # with a world and loop closure: the MapEvaluation of the corrected glass map
 
     @property
     def scans_per_second(self) -> float:
@@ -259,6 +260,10 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
         mask = np.load(seen_path) if seen_path is not None else None
         ev = evaluate_map(proc, load_world(world), seen=mask)
         res.error = ev.error
+        if res.pose_graph is not None and res.pose_graph.glass is not None:
+            from types import SimpleNamespace
+
+            res.corrected = evaluate_map(SimpleNamespace(mapper=res.pose_graph.glass), load_world(world), seen=mask)
         res.seen_from = str(seen_path) if ev.seen_from == "simulator" else "map"
     res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
     return res
@@ -343,4 +348,6 @@ def summarize(results: list[ReplayResult]) -> str:
                 "figure is not comparable with the demo's; pass --seen out/demo/seen_cells.npy)")
         lines.append(f"{r.path}: {r.scans} scans in {r.wall_time:.1f} s ({r.scans_per_second:.0f} scans/s, "
                      f"{r.speedup:.1f}x real time), median total {lat.get('total', float('nan')):.1f} ms/scan{err}")
+        if r.corrected is not None:
+            lines.append("  corrected map (key scans at the pose graph's poses): " + r.corrected.describe())
     return "\n".join(lines)
