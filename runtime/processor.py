@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from glassmap.pose.motion import compose
 from glassmap.types import Odometry, Scan
 from runtime.config import MappingConfig
 from runtime.pipeline import ScanResult
@@ -53,11 +54,6 @@ class MappingProcessor:
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"
         self.graph = None  # the pose-graph worker (mapping.loop_closure)
-        if mapping.loop_closure:
-            from glassmap.pose.backend import BackEndConfig
-            from runtime.graph_worker import GraphWorker
-
-            self.graph = None  # set below, once the mapper (its config and classifier) exists
         if mapping.loop_closure:
             from glassmap.pose.backend import BackEndConfig
             from runtime.graph_worker import GraphWorker
@@ -105,8 +101,6 @@ class MappingProcessor:
         if self.graph is not None:
             if key and self.estimator.last_key_scan is not None:
                 self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
-            from glassmap.pose.motion import compose
-
             corrected = compose(self.graph.correction(), est.pose)
         self.scans += 1
         st = self.estimator.stats
