@@ -12,7 +12,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from glassmap.pose.motion import compose
 from glassmap.types import Odometry, Scan
 from runtime.config import MappingConfig
 from runtime.pipeline import ScanResult
@@ -101,6 +100,8 @@ class MappingProcessor:
         if self.graph is not None:
             if key and self.estimator.last_key_scan is not None:
                 self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
+            from glassmap.pose.motion import compose  # glassmap.pose is imported lazily in this module
+
             corrected = compose(self.graph.correction(), est.pose)
         self.scans += 1
         st = self.estimator.stats
