@@ -4,8 +4,9 @@ Nodes are key-scan base poses (x, y m, yaw rad) in the map frame. Node 0 carries
 anchor). Edges are relative poses ``relative(a, b)`` (b in a's frame, :func:`glassmap.pose.motion.relative`)
 with a 3x3 covariance of that relative pose's (x, y, yaw) components; gtsam expects the covariance in the
 tangent space of Pose2 at the measurement (x, y rotated into b's frame), which :func:`to_tangent` converts
-to. Each ``add_*`` call is one iSAM2 update (relinearisation as iSAM2 decides); a loop closure is followed
-by extra iterations (:meth:`PoseGraph.add_loop`) so the correction is fully propagated.
+to. Sequential edges go to iSAM2 in batches of ``batch`` (one update each; the solution of the newest nodes
+is their chained guess until then); a loop closure flushes the batch, is one update, and is followed by
+extra iterations (:meth:`PoseGraph.add_loop`) so the correction is fully propagated.
 """
 
 from __future__ import annotations
@@ -50,13 +51,17 @@ def _noise(cov: np.ndarray):
 class PoseGraph:
     """Key-scan poses, their edges, and the iSAM2 solution (``poses``, ``marginal``)."""
 
-    def __init__(self, first_pose: np.ndarray, first_cov: np.ndarray, loop_iterations: int = 3) -> None:
+    def __init__(self, first_pose: np.ndarray, first_cov: np.ndarray, loop_iterations: int = 3,
+                 batch: int = 10) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.001)
         params.relinearizeSkip = 1
         params.setFactorization("QR")  # robust to the poorly conditioned long chains of tight odometry edges
         self._isam = gtsam.ISAM2(params)
         self.loop_iterations = loop_iterations
+        self.batch = batch  # sequential edges handed to iSAM2 together (one update per batch)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
         self.edges: list[Edge] = []
         self._poses = np.asarray(first_pose, dtype=np.float64).reshape(1, 3).copy()
         g = gtsam.NonlinearFactorGraph()
@@ -79,17 +84,23 @@ class PoseGraph:
         a = len(self) - 1
         b = a + 1
         rel = np.asarray(rel, dtype=np.float64)
-        g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
+        self._new_factors.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
         guess = compose(self._poses[a], rel)
-        v = gtsam.Values()
-        v.insert(b, gtsam.Pose2(*guess))
+        self._new_values.insert(b, gtsam.Pose2(*guess))
         self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "sequential"))
-        self._isam.update(g, v)
         self._poses = np.vstack([self._poses, guess])
+        if self._new_values.size() >= self.batch:
+            self._flush()
         if len(self.edges) % 50 == 0:  # the chain alone changes little: read the solution back now and then
             self._read()
         return b
+
+    def _flush(self) -> None:
+        """Hand the buffered sequential edges to iSAM2 (one update)."""
+        if self._new_values.size():
+            self._isam.update(self._new_factors, self._new_values)
+            self._new_factors = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
 
     def add_loop(self, a: int, b: int, rel: np.ndarray, cov: np.ndarray) -> None:
         """Add a loop-closure edge (node b at ``rel`` in node a's frame, covariance ``cov``) and re-solve."""
@@ -97,6 +108,7 @@ class PoseGraph:
         if not (0 <= a < n and 0 <= b < n) or a == b:
             raise PoseGraphError(f"loop edge {a} -> {b} needs two different existing nodes (0..{n - 1})")
         rel = np.asarray(rel, dtype=np.float64)
+        self._flush()
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
         self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "loop"))
@@ -106,6 +118,7 @@ class PoseGraph:
         self._read()
 
     def _read(self) -> None:
+        self._flush()
         est = self._isam.calculateEstimate()
         n = len(self)
         out = np.empty((n, 3))
@@ -123,4 +136,5 @@ class PoseGraph:
         """Marginal covariance (3, 3) of node i in its own tangent space (x, y in the node's frame, yaw)."""
         if not 0 <= i < len(self):
             raise PoseGraphError(f"no node {i} (0..{len(self) - 1})")
+        self._flush()
         return np.asarray(self._isam.marginalCovariance(i))
