@@ -1,15 +1,14 @@
 """The pose-graph worker: runs the SLAM back end in its own thread, off the 40 Hz scan path.
 
 The processing thread hands over each key scan (:meth:`GraphWorker.submit`, never blocks; the estimator's
-``last_key_scan``); the worker adds it to the :class:`~glassmap.pose.backend.GraphBackEnd` (iSAM2 update,
-submaps, loop-closure checks). After accepted loop closures (once it has caught up with the queue, at most every
-``rebuild_period`` s) and when asked at the end of a run, it
-re-integrates the key scans at the optimised poses into a corrected occupancy grid and, when the key scans
-carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`). Readers take
-snapshots under a lock: the latest correction (front-end frame -> corrected frame), the optimised
-trajectory and the corrected grid. Every key scan is processed in order (the queue is not bounded: key
-scans come at ~10 Hz and the back end takes a few ms each), so a replay of a recording reproduces the
-graph exactly.
+``last_key_scan`` with the raw scan and its p(glass)); the worker adds it to the
+:class:`~glassmap.pose.backend.GraphBackEnd` (iSAM2, submaps, loop-closure checks). After accepted loop
+closures (once it has caught up with the queue, at most every ``rebuild_period`` s) and when asked at the
+end of a run, it re-integrates the key scans at the optimised poses into a corrected occupancy grid and,
+when the key scans carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`).
+Readers take snapshots under a lock: the latest correction (front-end frame -> corrected frame), the
+optimised trajectory and the corrected maps. The queue is not bounded and every key scan is processed in
+order, so a replay of a recording reproduces the final graph exactly.
 """
 
 from __future__ import annotations
