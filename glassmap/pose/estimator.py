@@ -217,7 +217,15 @@ class PoseEstimator:
         self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
         self.map_region: MapRegion | None = None  # its error model (None before the first match)
         self._matched_keys: np.ndarray | None = None  # wall blocks (map-frame keys) under the last match
-        self._extrapolated = (0.0, 0.0)  # (s past the newest odometry, v m/s) of the last prediction
+        # the filter's state is the base at the newest odometry time at or before the scan (``_last_t``); the
+        # motion extrapolated past it to the scan (base frame) is carried apart, with (s extrapolated, v m/s,
+        # omega rad/s, s held beyond the limit), because the next odometry message replaces it
+        self._ext = np.zeros(3)
+        # after a key scan's match at an extrapolated stamp: the scan's own posterior (pose, covariance of the
+        # filter part), which also corrects the extrapolated motion; None: compose(filter pose, _ext)
+        self._scan_post: tuple[np.ndarray, np.ndarray] | None = None
+        self._extrapolated = (0.0, 0.0, 0.0, 0.0)
+        self._last_t: float | None = None
         if config.subcell_walls:
             for name in HIT_LAYERS:
                 if name not in self.occupancy.grid.layer_names:
@@ -247,7 +255,7 @@ class PoseEstimator:
             return True
         if cfg.keyframe_max_scans > 0 and self._since_key >= cfg.keyframe_max_scans:
             return True
-        d = relative(self._key_pose, self.ekf.pose)
+        d = relative(self._key_pose, self.scan_pose())
         return bool(np.hypot(d[0], d[1]) >= cfg.keyframe_distance or abs(d[2]) >= cfg.keyframe_angle)
 
     def update(self, scan: Scan) -> PoseEstimate:
@@ -261,15 +269,22 @@ class PoseEstimator:
         stamp = float(scan.stamp)
         if not np.isfinite(stamp):
             raise ValueError(f"scan {scan.seq} has a non-finite stamp {scan.stamp!r}; stamps are host seconds")
-        # ---- prediction from odometry interpolated to the scan time
+        # ---- prediction from odometry interpolated to the scan time. The filter predicts only up to the
+        # newest odometry message (measured motion); the rest, extrapolated with that message's velocity, is
+        # carried apart (``_ext``): the next message replaces it, so a match must not correct it into the state
+        t_state = stamp
+        self._scan_post = None
         if len(self.odometry):
-            odom_now = self.odometry.pose_at(stamp)
+            t_state = min(stamp, float(self.odometry.newest))
+            odom_state = self.odometry.pose_at(t_state)
+            self._ext = relative(odom_state, self.odometry.pose_at(stamp))
             self._extrapolated = self.odometry.extrapolation(stamp)
-            delta = relative(self._last_odom, odom_now) if self._last_odom is not None else np.zeros(3)
-            self._last_odom = odom_now
+            delta = relative(self._last_odom, odom_state) if self._last_odom is not None else np.zeros(3)
+            self._last_odom = odom_state
         else:
             delta = np.zeros(3)
-        dt = 0.0 if self._last_stamp is None else max(stamp - self._last_stamp, 0.0)
+        dt = 0.0 if self._last_t is None else max(t_state - self._last_t, 0.0)
+        self._last_t = t_state if self._last_t is None else max(self._last_t, t_state)
         self._last_stamp = stamp
         self.ekf.predict(delta, cfg.motion.covariance(delta, dt))
         t_pred = time.perf_counter() - t0
@@ -293,7 +308,7 @@ class PoseEstimator:
         # field_refresh_scans key scans would all be placed by odometry alone, and the map keeps their errors)
         if (self._since_rebuild >= cfg.field_refresh_scans
                 or (not self.field.ready and self._since_rebuild > 0)
-                or self.field.needs_rebuild(self.occupancy, self.ekf.pose[:2], cfg.matcher.range_max * 0.25 + 1.0)):
+                or self.field.needs_rebuild(self.occupancy, self.scan_pose()[:2], cfg.matcher.range_max * 0.25 + 1.0)):
             self._rebuild_field()
 
         # ---- matching + fusion
@@ -306,8 +321,9 @@ class PoseEstimator:
         if ranges.size and self.field.ready:
             pts, w, idx = select_points(angles, ranges, self.mount, cfg.matcher)
             if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names and idx.size:
-                w = w * self.glass_weights(self.laser_pose_of(self.ekf.pose), angles[idx], ranges[idx])
-            res = self.matcher.match(self.field, pts, w, self.ekf.pose, self.ekf.cov)
+                w = w * self.glass_weights(self.laser_pose_of(self.scan_pose()), angles[idx], ranges[idx])
+            res = self.matcher.match(self.field, pts, w, self.scan_pose(),
+                                     self._carried(self.ekf.cov) + self.extrapolation_covariance())
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)
@@ -323,25 +339,25 @@ class PoseEstimator:
                 protect = self.protect_mask_fn
             elif cfg.protect_glass:
                 protect = self.glass_protect_mask
-            self.occupancy.integrate(self.laser_pose_of(self.ekf.pose), angles, ranges,
+            self.occupancy.integrate(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                      scan.geometry.range_max, protect=protect)
         if ranges.size and write and (cfg.map_uncertainty or cfg.subcell_walls):
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
             if not cfg.integrate:
-                self.occupancy.ensure_scan_extent(self.laser_pose_of(self.ekf.pose), angles, ranges,
+                self.occupancy.ensure_scan_extent(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                                   scan.geometry.range_max)
             if cfg.map_uncertainty:
                 self.store_map_variance(angles, ranges, scan.geometry.range_max)
             if cfg.subcell_walls:
                 self._store_hits(angles, ranges, scan.geometry.range_max)
         st.t_integrate = time.perf_counter() - t3
-        self._key_pose = self.ekf.pose.copy()
+        self._key_pose = self.scan_pose()
         self.last_key_scan = KeyScan(
-            seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.ekf.cov.copy(),
-            odom=np.zeros(3) if self._last_odom is None else self._last_odom.copy(), fused_dims=st.last_fused_dims,
-            written=bool(write), angles=np.asarray(angles), ranges=ranges, range_max=float(scan.geometry.range_max),
-            mount=self.mount)
+            seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.scan_relative_covariance().copy(),
+            odom=np.zeros(3) if self._last_odom is None else compose(self._last_odom, self._ext),
+            fused_dims=st.last_fused_dims, written=bool(write), angles=np.asarray(angles), ranges=ranges,
+            range_max=float(scan.geometry.range_max), mount=self.mount)
         self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)
@@ -361,7 +377,8 @@ class PoseEstimator:
         if h.shape[0] == 0:
             return True
         hm = None if h.shape[0] == 3 else h
-        _, _, d2 = self.ekf.innovation(res.pose, res.covariance, hm)
+        z, r = self._measurement_at_state(res)
+        _, _, d2 = self.ekf.innovation(z, r, hm)
         gate = cfg.gate_chi2 * _CHI2_9999_SHARE[h.shape[0]]
         if d2 > gate:
             st.gated += 1
@@ -370,7 +387,7 @@ class PoseEstimator:
                 if st.status != "lost":
                     # the matches disagree with the prediction by about the innovation: the error is at least
                     # that large, so the covariance (and with it the search window) is widened to cover it
-                    y = res.pose - self.ekf.pose
+                    y = z - self.ekf.pose
                     y[2] = float(wrap_angle(y[2]))
                     self.ekf.cov = self.ekf.cov + np.outer(y, y)
                     self.ekf.actual_cov = self.ekf.actual_cov + np.outer(y, y)
@@ -386,14 +403,21 @@ class PoseEstimator:
                     st.status = "degraded"
             return False
         rho = self._match_overlap(pts, res.pose) if cfg.correlated_matches else 0.0
-        self.ekf.correct(res.pose, res.covariance, rho, hm)
+        if np.any(self._ext):
+            # the scan's own posterior: its prior (the filter's pose carried along the extrapolated motion) and
+            # the match, fused in the same directions; that is where the scan is mapped and reported
+            scan = PoseEKF(self.scan_pose(), self.scan_relative_covariance())
+            scan.correct(res.pose, res.covariance, 0.0, hm)
+        self.ekf.correct(z, r, rho, hm)
+        if np.any(self._ext):
+            self._scan_post = (scan.pose.copy(), scan.cov.copy())
         st.matched += 1
         st.last_fused_dims = h.shape[0]
         if st.status == "lost":
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
         if cfg.map_uncertainty:
-            self.map_cov, self.map_region = self.matched_map_covariance(pts, self.ekf.pose)
+            self.map_cov, self.map_region = self.matched_map_covariance(pts, self.scan_pose())
         return True
 
     def deskewed(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
@@ -415,7 +439,7 @@ class PoseEstimator:
         t = time.perf_counter()
         g = self.occupancy.grid
         pts_layers = tuple(g[n] for n in HIT_LAYERS) if self.config.subcell_walls else None
-        inputs = self.field.snapshot(self.occupancy, self.ekf.pose[:2], pts_layers)
+        inputs = self.field.snapshot(self.occupancy, self.scan_pose()[:2], pts_layers)
         if background:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="likelihood-field")
@@ -462,7 +486,7 @@ class PoseEstimator:
         if not hit.any():
             return
         g = self.occupancy.grid
-        lp = self.laser_pose_of(self.ekf.pose)
+        lp = self.laser_pose_of(self.scan_pose())
         a = lp[2] + angles[hit]
         xy = lp[:2] + np.stack([ranges[hit] * np.cos(a), ranges[hit] * np.sin(a)], axis=1)
         cells = g.world_to_cell(xy)
@@ -527,9 +551,9 @@ class PoseEstimator:
         if not hit.any():
             return
         g = self.occupancy.grid
-        lp = self.laser_pose_of(self.ekf.pose)
+        lp = self.laser_pose_of(self.scan_pose())
         x = lp[:2]
-        p = self.ekf.actual_cov
+        p = self.scan_relative_covariance()
         pth = float(p[2, 2])
         reg = self.map_region if self.map_region is not None else MapRegion(0.0, 0.0, x)
         vyaw = reg.yaw_var + pth
@@ -554,22 +578,54 @@ class PoseEstimator:
             g[name].reshape(-1)[upd] = np.float32(val)
 
     # ------------------------------------------------------------------ outputs
+    def scan_pose(self) -> np.ndarray:
+        """Base pose (3,) in the map frame at the last scan's stamp: the filter's pose (at the newest odometry
+        message) with the motion extrapolated past it."""
+        if self._scan_post is not None:
+            return self._scan_post[0].copy()
+        return compose(self.ekf.pose, self._ext)
+
+    def extrapolation_covariance(self) -> np.ndarray:
+        """3x3 covariance (map frame) of the motion extrapolated past the newest odometry message to the last
+        scan (:meth:`MotionNoise.extrapolation_covariance`; zero when the scan is inside the odometry)."""
+        dt, v, w, held = self._extrapolated
+        if dt <= 0 and held <= 0:
+            return np.zeros((3, 3))
+        _, jb = compose_jacobians(self.ekf.pose, self._ext)
+        return jb @ self.config.motion.extrapolation_covariance(v, dt, w, held) @ jb.T
+
+    def _carried(self, cov: np.ndarray) -> np.ndarray:
+        """A 3x3 covariance ``cov`` of the filter's pose carried along the extrapolated motion to the scan."""
+        ja, _ = compose_jacobians(self.ekf.pose, self._ext)
+        return ja @ cov @ ja.T
+
+    def _measurement_at_state(self, res: MatchResult) -> tuple[np.ndarray, np.ndarray]:
+        """The match (base pose at the scan's stamp, covariance) as a measurement of the filter's pose (at the
+        newest odometry message): the extrapolated motion is undone and its error added to the measurement's
+        covariance (the next odometry message replaces it, so it is not the state's error)."""
+        if not np.any(self._ext):
+            return res.pose, res.covariance
+        back = relative(self._ext, np.zeros(3))  # the inverse motion
+        ja, _ = compose_jacobians(res.pose, back)
+        return compose(res.pose, back), ja @ res.covariance @ ja.T + self.extrapolation_covariance()
+
     def covariance(self) -> np.ndarray:
-        """Reported 3x3 covariance: the EKF's (relative to the map) plus the matched map region's, plus, when
-        the scan came after the newest odometry message, the error of extrapolating with that message's
-        noisy velocity (:meth:`MotionNoise.extrapolation_covariance`; transient: the next message replaces
+        """Reported 3x3 covariance at the last scan: the EKF's (relative to the map) plus the matched map
+        region's, plus, when the scan came after the newest odometry message, the error of extrapolating with
+        that message's noisy velocity (:meth:`extrapolation_covariance`; transient: the next message replaces
         the extrapolated motion, so it is not added to the filter's state covariance)."""
-        cov = self.ekf.actual_cov + self.map_cov
-        dt, v = self._extrapolated
-        if dt > 0:
-            c, s = np.cos(self.ekf.pose[2]), np.sin(self.ekf.pose[2])
-            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            cov = cov + rot @ self.config.motion.extrapolation_covariance(v, dt) @ rot.T
-        return cov
+        return self.scan_relative_covariance() + self._carried(self.map_cov)
+
+    def scan_relative_covariance(self) -> np.ndarray:
+        """3x3 covariance of the pose at the last scan relative to the map built so far (the filter's, carried
+        along the extrapolated motion, or the scan's own posterior after a match at an extrapolated stamp)."""
+        if self._scan_post is not None:
+            return self._scan_post[1]
+        return self._carried(self.ekf.actual_cov) + self.extrapolation_covariance()
 
     def estimate(self, stamp: float | None = None) -> PoseEstimate:
-        """The current estimate (base, map frame) with the reported covariance."""
-        x, y, yaw = self.ekf.pose
+        """The current estimate (base, map frame, at the last scan) with the reported covariance."""
+        x, y, yaw = self.scan_pose()
         s = self._last_stamp if stamp is None else stamp
         return PoseEstimate(stamp=0.0 if s is None else s, x=float(x), y=float(y), yaw=float(yaw),
                             covariance=self.covariance(), status=self.stats.status)

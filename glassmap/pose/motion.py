@@ -72,17 +72,24 @@ class MotionNoise:
     extrapolation_v: float = 0.02  # m/s
     extrapolation_omega: float = 0.1  # rad/s
 
-    def extrapolation_covariance(self, v: float, dt: float) -> np.ndarray:
+    def extrapolation_covariance(self, v: float, dt: float, omega: float = 0.0, held: float = 0.0) -> np.ndarray:
         """3x3 covariance (base frame) of a pose extrapolated ``dt`` seconds past the newest odometry with its
-        velocity (v m/s forward): the velocity a wheel-odometry message carries is measured over a short
-        interval and is noisy (``extrapolation_v``, ``extrapolation_omega``: 1-sigma; the defaults are the
-        simulated P3-DX's slip noise seen over one 25 ms step at 0.5 m/s, 0.09 rad/s). A yaw-rate error
-        d_omega turns the pose by d_omega dt and moves it sideways by v d_omega dt^2 / 2. The error is
-        transient: the next odometry message replaces the extrapolation (see ``PoseEstimator.covariance``)."""
-        dt = max(float(dt), 0.0)
+        velocity (v m/s forward, omega rad/s): the velocity a wheel-odometry message carries is measured over
+        a short interval and is noisy (``extrapolation_v``, ``extrapolation_omega``: 1-sigma; the defaults are
+        the simulated P3-DX's slip noise seen over one 25 ms step at 0.5 m/s, 0.09 rad/s). A yaw-rate error
+        d_omega turns the pose by d_omega dt and moves it sideways by v d_omega dt^2 / 2. ``held``: seconds
+        beyond the extrapolation limit, when the pose is held although the base may still be moving at up to
+        its last velocity (odometry late, e.g. under CPU load): (|v| + extrapolation_v) held along the track
+        and (|omega| + extrapolation_omega) held in yaw. The error is transient: the next odometry message
+        replaces the extrapolation (see ``PoseEstimator.covariance``)."""
+        dt, held = max(float(dt), 0.0), max(float(held), 0.0)
         sv, sw = self.extrapolation_v * dt, self.extrapolation_omega * dt
         lat = 0.5 * abs(float(v)) * dt * sw
-        return np.array([[sv * sv, 0.0, 0.0], [0.0, lat * lat, lat * sw], [0.0, lat * sw, sw * sw]])
+        out = np.array([[sv * sv, 0.0, 0.0], [0.0, lat * lat, lat * sw], [0.0, lat * sw, sw * sw]])
+        if held > 0:
+            out[0, 0] += ((abs(float(v)) + self.extrapolation_v) * held) ** 2
+            out[2, 2] += ((abs(float(omega)) + self.extrapolation_omega) * held) ** 2
+        return out
 
     def covariance(self, delta: np.ndarray, dt: float) -> np.ndarray:
         """3x3 covariance of the relative motion ``delta`` (base frame at the start) over ``dt`` seconds."""
@@ -126,12 +133,20 @@ class OdometryBuffer:
     def __len__(self) -> int:
         return len(self._t)
 
-    def extrapolation(self, t: float) -> tuple[float, float]:
+    @property
+    def newest(self) -> float | None:
+        """Stamp (s) of the newest message, None when the buffer is empty."""
+        return self._t[-1] if self._t else None
+
+    def extrapolation(self, t: float) -> tuple[float, float, float, float]:
         """(seconds past the newest message that :meth:`pose_at` extrapolates for time ``t``, clipped to
-        ``max_extrapolation``; the newest forward velocity, m/s). (0, 0) when t is inside the buffer."""
+        ``max_extrapolation``; the newest forward velocity, m/s; its yaw rate, rad/s; seconds beyond the
+        clip, during which the pose is held). (0, 0, 0, 0) when t is inside the buffer."""
         if not self._t or t <= self._t[-1]:
-            return 0.0, 0.0
-        return min(t - self._t[-1], self.max_extrapolation), self._vel[-1][0]
+            return 0.0, 0.0, 0.0, 0.0
+        past = t - self._t[-1]
+        v, w = self._vel[-1]
+        return min(past, self.max_extrapolation), v, w, max(past - self.max_extrapolation, 0.0)
 
     def add(self, odom: Odometry) -> None:
         pose = np.array([odom.x, odom.y, odom.yaw], dtype=np.float64)
