@@ -406,7 +406,9 @@ class PoseEstimator:
         if np.any(self._ext):
             # the scan's own posterior: its prior (the filter's pose carried along the extrapolated motion) and
             # the match, fused in the same directions; that is where the scan is mapped and reported
-            scan = PoseEKF(self.scan_pose(), self.scan_relative_covariance())
+            # (the filter's covariance, as the gain uses; with correlated_matches the scan's reported covariance
+            # is then this one, not the consider covariance, until the next scan)
+            scan = PoseEKF(self.scan_pose(), self._carried(self.ekf.cov) + self.extrapolation_covariance())
             scan.correct(res.pose, res.covariance, 0.0, hm)
         self.ekf.correct(z, r, rho, hm)
         if np.any(self._ext):
