@@ -47,6 +47,10 @@ def register(subparsers) -> None:
     e.add_argument("--deskew", action="store_true",
                    help="the estimator undoes the motion during the sweep with the odometry (EstimatorConfig."
                    "deskew); meaningful with --sweep-motion")
+    e.add_argument("--odometry-lag", type=float, default=0.0, metavar="S",
+                   help="odometry reaches the estimator S seconds after its stamp, as under CPU load (default 0)")
+    e.add_argument("--drop-scans", type=float, default=0.0, metavar="SHARE",
+                   help="this share (0-1) of the scans, drawn at random, never reaches the estimator (default 0)")
     e.add_argument("--no-return-range", type=float, default=None,
                    help="how far (m) a no-return beam (+inf) clears free space in the estimator's grid "
                    "(default: OccupancyParams' default)")
@@ -109,6 +113,9 @@ def _eval(args: argparse.Namespace) -> int:
         if args.no_return_range < 0:
             raise SystemExit(f"--no-return-range must be >= 0 m, got {args.no_return_range}")
         cfg = replace(cfg, occupancy=replace(cfg.occupancy, no_return_range=args.no_return_range))
+    if args.odometry_lag < 0 or not 0 <= args.drop_scans < 1:
+        raise SystemExit(f"--odometry-lag must be >= 0 s and --drop-scans in [0, 1), got {args.odometry_lag}, "
+                         f"{args.drop_scans}")
     backend = None
     if args.loop_closure:
         from glassmap.pose.backend import BackEndConfig
@@ -118,7 +125,8 @@ def _eval(args: argparse.Namespace) -> int:
     jobs = [(w, s) for w in worlds for s in seeds]
     for w, s in tqdm(jobs, desc="pose eval", unit="run", disable=args.no_progress):
         m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion,
-                         glass_online=online, classifier=clf, backend_config=backend)
+                         glass_online=online, classifier=clf, backend_config=backend,
+                         odometry_lag=args.odometry_lag, drop_scans=args.drop_scans)
         rows.append(m.as_dict())
         tqdm.write(_line(m.as_dict()))
     os.makedirs(args.out, exist_ok=True)
@@ -126,7 +134,9 @@ def _eval(args: argparse.Namespace) -> int:
                         + ("_every_scan" if args.every_scan else "")
                         + ("_sweep" if args.sweep_motion else "") + ("_deskew" if args.deskew else "")
                         + (f"_noret{args.no_return_range:g}" if args.no_return_range is not None else "")
-                        + ("_loop_closure" if args.loop_closure else ""))
+                        + ("_loop_closure" if args.loop_closure else "")
+                        + (f"_lag{args.odometry_lag:g}" if args.odometry_lag else "")
+                        + (f"_drop{args.drop_scans:g}" if args.drop_scans else ""))
     _write_csv(stem + ".csv", rows)
     with open(stem + ".json", "w") as f:
         json.dump(rows, f, indent=1)
@@ -145,7 +155,7 @@ def _line(r: dict) -> str:
     return (f"{r['world']:15s} seed {r['seed']:3d}  ATE {100 * r['ate_rmse']:5.1f} cm (max {100 * r['ate_max']:5.1f}) "
             f"drift {100 * r['final_drift']:5.1f} cm | odometry ATE {100 * r['odom_ate_rmse']:6.1f} cm drift "
             f"{100 * r['odom_final_drift']:6.1f} cm | yaw {r['yaw_rmse_deg']:.2f} deg | NEES {r['nees_mean']:5.2f} "
-            f"in95 {100 * r['inside_95']:5.1f} % | sigma_xy {100 * r['sigma_xy_mean']:.1f} cm | "
+            f"in95 {100 * r['inside_95']:5.1f} % | gated {r['gated']} lost {r['lost_events']} | sigma_xy {100 * r['sigma_xy_mean']:.1f} cm | "
             f"key scans {100 * r['key_share']:.0f} % | core {r['t_core_median_ms']:.2f} ms (key scans "
             f"{r['t_core_key_median_ms']:.2f} ms)" + lc)
 

@@ -55,6 +55,7 @@ class Trajectory:
     closure_truth_error: np.ndarray | None = None
     t_backend: np.ndarray | None = None
     closure_checks: int = 0
+    lost_events: int = 0
 
 
 @dataclass
@@ -93,6 +94,8 @@ class RunMetrics:
     lc_false_closures: int = 0
     lc_backend_ms_mean: float = float("nan")
     lc_backend_ms_max: float = float("nan")
+    gated: int = 0  # key-scan matches rejected by the gate
+    lost_events: int = 0  # times the track became lost
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -100,7 +103,8 @@ class RunMetrics:
 
 def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = True, glass_oracle: bool = False,
                   on_scan=None, progress: bool = False, occupancy=None, world=None, glass_online: bool = False,
-                  classifier=None, backend=None) -> tuple[Trajectory, PoseEstimator]:
+                  classifier=None, backend=None, odometry_lag: float = 0.0, drop_scans: float = 0.0
+                  ) -> tuple[Trajectory, PoseEstimator]:
     """Feed a :class:`glassmap.sim.dataset.SimRun` through a fresh :class:`PoseEstimator`.
 
     The estimator starts at the true pose of the first odometry sample (that anchors the map frame), with
@@ -114,7 +118,10 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     runtime does (a :class:`~glassmap.mapping.GlassMapper` with ``classifier`` on the estimator's grid, its
     ``"glass"`` layer read by ``EstimatorConfig.glass_weighting``; every scan). ``backend``: a
     :class:`~glassmap.pose.backend.GraphBackEnd` fed every key scan (synchronously here: the front end does
-    not depend on it, so the results are those of the runtime's worker).
+    not depend on it, so the results are those of the runtime's worker). ``odometry_lag`` (s): each
+    odometry message reaches the estimator this much later than its stamp (as under CPU load);
+    ``drop_scans``: this share of the scans, drawn at random (generator seeded with the run's seed), never
+    reaches it; the trajectory holds the scans that did (``on_scan`` gets their index in the run).
     """
     mount = tuple(run.params.get("robot", {}).get("laser_offset", (0.1, 0.0, 0.0)))
     start = np.asarray(run.odom_true_poses[0], dtype=np.float64)
@@ -127,7 +134,10 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
         on_scan = _online_glass_hook(est, classifier, on_scan)
     odo = run.odometry()
     o_t = run.odom_stamps
-    s = run.n_scans
+    kept = np.arange(run.n_scans)
+    if drop_scans > 0:
+        kept = kept[np.random.default_rng(run.seed).random(run.n_scans) >= drop_scans]
+    s = kept.size
     poses, covs = np.zeros((s, 3)), np.zeros((s, 3, 3))
     t_core, t_field, t_int = np.zeros(s), np.zeros(s), np.zeros(s)
     key = np.zeros(s, dtype=bool)
@@ -136,37 +146,39 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     key_scan: list[int] = []
     t_back: list[float] = []
     j = 0
-    it = range(s)
+    it = range(s)  # positions in kept
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, desc=f"{run.world_name} seed {run.seed}", unit="scan", leave=False)
-    for i in it:
+    for k in it:
+        i = int(kept[k])
         stamp = run.scan_stamps[i]
         limit = stamp if causal else (o_t[min(np.searchsorted(o_t, stamp), len(o_t) - 1)])
+        limit -= odometry_lag
         while j < len(odo) and o_t[j] <= limit + 1e-12:
             est.predict(odo[j])
             j += 1
         scan = run.scan(i)
         e = est.update(scan)
-        poses[i], covs[i] = e.pose, e.covariance
+        poses[k], covs[k] = e.pose, e.covariance
         st = est.stats
-        t_core[i], t_field[i], t_int[i], key[i] = st.t_core, st.t_field, st.t_integrate, st.last_keyframe
+        t_core[k], t_field[k], t_int[k], key[k] = st.t_core, st.t_field, st.t_integrate, st.last_keyframe
         if backend is not None:
             if st.last_keyframe:
                 t = time.perf_counter()
                 backend.add(est.last_key_scan)
                 t_back.append(time.perf_counter() - t)
                 key_scan.append(i)
-            last_key[i] = len(backend) - 1
-            corrected[i] = backend.correct(e.pose)
+            last_key[k] = len(backend) - 1
+            corrected[k] = backend.correct(e.pose)
         if on_scan is not None:
             on_scan(i, scan, e, est)
-    odom_map = _odometry_in_map(run, start)
-    traj = Trajectory(stamps=run.scan_stamps.copy(), poses=poses, covs=covs, truth=run.scan_true_poses.copy(),
+    odom_map = _odometry_in_map(run, start)[kept]
+    traj = Trajectory(stamps=run.scan_stamps[kept], poses=poses, covs=covs, truth=run.scan_true_poses[kept],
                       odom=odom_map, t_core=t_core, t_field=t_field, t_integrate=t_int,
                       matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated,
-                      key=key)
+                      key=key, lost_events=est.stats.lost_events)
     if backend is not None:
         _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, t_back)
     return traj, est
@@ -283,16 +295,19 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         key_share=float(traj.key.mean()) if s else 0.0,
         t_core_key_median_ms=float(np.median(traj.t_core[traj.key]) * 1e3) if traj.key.any() else 0.0,
         t_field_mean_ms=float(np.mean(traj.t_field) * 1e3),
-        t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3), **lc)
+        t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3), gated=int(traj.gated),
+        lost_events=int(traj.lost_events), **lc)
 
 
 def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConfig | None = None, *,
                  causal: bool = True, glass_oracle: bool = False, progress: bool = False,
                  run_cache: dict | None = None, sweep_motion: bool = False, glass_online: bool = False,
-                 classifier=None, backend_config=None) -> RunMetrics:
+                 classifier=None, backend_config=None, odometry_lag: float = 0.0,
+                 drop_scans: float = 0.0) -> RunMetrics:
     """Simulate (or take from ``run_cache``) one run and evaluate the estimator on it. ``sweep_motion``: the
-    simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``).
-    ``backend_config``: also run the pose-graph back end (:class:`~glassmap.pose.backend.BackEndConfig`)."""
+    simulated laser takes each beam from where it is when the beam fires (see ``simulate_run``);
+    ``odometry_lag``, ``drop_scans``: see :func:`run_estimator`. ``backend_config``: also run the pose-graph
+    back end (:class:`~glassmap.pose.backend.BackEndConfig`)."""
     from glassmap.sim.dataset import simulate_run
 
     key = (world, route, seed, sweep_motion)
@@ -307,5 +322,6 @@ def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConf
 
         backend = GraphBackEnd(backend_config, (config or EstimatorConfig()).likelihood.sigma_hit)
     traj, _ = run_estimator(run, config, causal=causal, glass_oracle=glass_oracle, progress=progress, world=world,
-                            glass_online=glass_online, classifier=classifier, backend=backend)
+                            glass_online=glass_online, classifier=classifier, backend=backend,
+                            odometry_lag=odometry_lag, drop_scans=drop_scans)
     return metrics(traj, run)
