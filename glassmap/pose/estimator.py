@@ -1,7 +1,9 @@
 """The online pose estimator: odometry prediction + correlative scan matching, fused by an EKF.
 
-Per scan (``update``): interpolate wheel odometry to the scan time and predict the base pose in the map
-frame with the motion-noise model. On key scans only (motion filter: moved >= 5 cm or turned >= 2 deg
+Per scan (``update``): predict the base pose in the map frame with the motion-noise model from the wheel
+odometry up to the newest message at or before the scan (the filter's state lives there), and carry the
+motion extrapolated past it to the scan's stamp apart (``scan_pose``; the next message replaces it, so a
+match does not correct it into the state, and its error widens the prediction). On key scans only (motion filter: moved >= 5 cm or turned >= 2 deg
 since the last key scan, or 20 scans since it; ``EstimatorConfig.keyframe_*``): match the scan against a
 likelihood field of the occupancy grid built so far, fuse the match (pose + covariance from the score
 distribution) with the prediction, then integrate the scan into the shared occupancy grid at the
