@@ -92,6 +92,7 @@ def _iter_mcap(path: Path, scan_topic: str | None, odom_topic: str | None) -> It
     have_odom = False
     echo_topic = scan_topic + LASTECHO_SUFFIX
     pending_echo = None  # (stamp ns, last-echo LaserScan) waiting for its first-echo scan
+    seq = 0  # scans numbered in recording order (LaserScan has no sequence number), as in the log lines
     for r in iter_mcap_raw(path):
         if r.topic == echo_topic and r.msgtype.endswith("LaserScan"):
             msg = ts.deserialize_cdr(r.data, r.msgtype)
@@ -100,7 +101,8 @@ def _iter_mcap(path: Path, scan_topic: str | None, odom_topic: str | None) -> It
             msg = ts.deserialize_cdr(r.data, r.msgtype)
             seen_scan = True
             ns = stamp_to_ns(msg.header.stamp)
-            scan = scan_from_msg(msg, tb.host(ns))
+            seq += 1
+            scan = scan_from_msg(msg, tb.host(ns), seq=seq)
             if pending_echo is not None and pending_echo[0] == ns:
                 er = np.asarray(pending_echo[1].ranges, dtype=np.float64)
                 ei = np.asarray(pending_echo[1].intensities, dtype=np.float64)

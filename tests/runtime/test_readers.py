@@ -55,7 +55,9 @@ def test_glassmap_recording_gives_back_the_live_stamps(tmp_path):
         sink.scan(it) if isinstance(it, Scan) else sink.odometry(it)
     rec.close()
     assert read_metadata(path)["note"] == "test"
-    check_items(list(iter_messages(path)))
+    got = list(iter_messages(path))
+    check_items(got)
+    assert [g.seq for g in got if isinstance(g, Scan)] == [1, 2, 3]  # numbered in recording order (for the log)
     caps = read_captures(path)
     assert isinstance(caps["laser"], Capture)
     assert [(c.t, c.direction) for c in caps["laser"].chunks] == [(0.0, "tx"), (0.5, "rx")]
