@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.hokuyo.clock import ClockMapper, RoundTrip, TimestampUnwrapper
+from drivers.clock import ClockMapper, RoundTrip
+from drivers.hokuyo.clock import TimestampUnwrapper
 from drivers.hokuyo.errors import BadValue, GarbageData, ScipProtocolError
 from drivers.hokuyo.scip import (
     SCAN_COMMANDS,

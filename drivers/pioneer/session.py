@@ -3,8 +3,8 @@
 A :class:`PioneerSession` is fed the bytes the host read with the host time (s) of each read. It keeps the
 per-link packet parser, the robot model from the handshake's SYNC2 reply, and the odometry tracker (which
 outlives a link: the controller keeps dead-reckoning while the host is away), and turns SIPs into
-``glassmap.types.Odometry`` and a :class:`BaseState`, counting what it discards in a
-:class:`PioneerStats`. It never reads a clock and never touches a port: the client feeds it live bytes
+``glassmap.types.Odometry`` and a :class:`BaseState` (stamped on the SIP cycle by ``drivers.pioneer.sip_clock``),
+counting what it discards in a :class:`PioneerStats`. It never reads a clock and never touches a port: the client feeds it live bytes
 (and drives the handshake with the packets it returns), ``runtime.raw_replay`` feeds it recorded ones.
 """
 
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from drivers.pioneer.errors import DecodeError
 from drivers.pioneer.odometry import CovarianceModel, OdometryTracker, PioneerModel, model_for
 from drivers.pioneer.packets import Packet, PacketParser, ParserStats
+from drivers.pioneer.sip_clock import SipClock
 from drivers.pioneer.sip import (ConfigPacket, EncoderPacket, StandardSIP, SyncReply, UnknownPacket,
                                  decode_packet)
 from glassmap.types import Odometry
@@ -103,12 +104,14 @@ class PioneerSession:
         self.tracker: OdometryTracker | None = None
         self._parser: PacketParser | None = None
         self._parser_totals = ParserStats()
+        self.sip_clock = SipClock(time_scale=time_scale)
 
     # -- links ------------------------------------------------------------------------------------------
     def new_link(self) -> None:
         """A new connection (a new handshake): a fresh parser; the odometry tracker carries over."""
         self.end_link()
         self._parser = PacketParser(inter_byte_timeout=self.inter_byte_timeout)
+        self.sip_clock.reset()
         self.links += 1
 
     def end_link(self) -> None:
@@ -153,16 +156,18 @@ class PioneerSession:
             log.debug("%s: %s", self.name, exc)
             return None
         if isinstance(msg, StandardSIP):
-            return self._on_sip(msg, pkt.stamp if pkt.stamp is not None else t)
+            return self._on_sip(msg, self.sip_clock.stamp(pkt.stamp if pkt.stamp is not None else t))
         if isinstance(msg, EncoderPacket):
             self.encoders = msg
         elif isinstance(msg, ConfigPacket):
             self.config = msg
+            self.sip_clock.set_cycle(msg.sip_cycle / 1000.0)
         elif isinstance(msg, UnknownPacket):
             self.stats.unknown_packets += 1
         return None
 
     def _on_sip(self, sip: StandardSIP, stamp: float) -> Odometry | None:
+        """A SIP stamped (host s) on the SIP cycle by ``sip_clock``."""
         if self.tracker is None or self.model is None:  # a SIP before any handshake: no model to read it
             self.stats.unknown_packets += 1
             return None

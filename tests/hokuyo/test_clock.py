@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from drivers.hokuyo.clock import ClockMapper, RoundTrip, TimestampUnwrapper
+from drivers.clock import ClockMapper, RoundTrip
+from drivers.hokuyo.clock import TimestampUnwrapper
 
 WRAP = 1 << 24  # ms: 16777.216 s
 
