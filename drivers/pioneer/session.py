@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from drivers.pioneer.errors import DecodeError
 from drivers.pioneer.odometry import CovarianceModel, OdometryTracker, PioneerModel, model_for
-from drivers.pioneer.packets import Packet, PacketParser, ParserStats
+from drivers.pioneer.packets import SIP_IDS, Packet, PacketParser, ParserStats
 from drivers.pioneer.sip_clock import SipClock
 from drivers.pioneer.sip import (ConfigPacket, EncoderPacket, StandardSIP, SyncReply, UnknownPacket,
                                  decode_packet)
@@ -105,6 +105,7 @@ class PioneerSession:
         self._parser: PacketParser | None = None
         self._parser_totals = ParserStats()
         self.sip_clock = SipClock(time_scale=time_scale)
+        self._queued: dict[int, int] = {}  # id(SIP packet) -> SIPs after it in the same read
 
     # -- links ------------------------------------------------------------------------------------------
     def new_link(self) -> None:
@@ -144,6 +145,8 @@ class PioneerSession:
             self.new_link()
         packets = self._parser.feed(data, t)
         self._sync_parser_stats()
+        sips = [p for p in packets if p.pid in SIP_IDS]
+        self._queued = {id(p): len(sips) - 1 - i for i, p in enumerate(sips)}
         return packets
 
     def handle(self, pkt: Packet, t: float) -> Odometry | None:
@@ -156,7 +159,8 @@ class PioneerSession:
             log.debug("%s: %s", self.name, exc)
             return None
         if isinstance(msg, StandardSIP):
-            return self._on_sip(msg, self.sip_clock.stamp(pkt.stamp if pkt.stamp is not None else t))
+            arrival = pkt.stamp if pkt.stamp is not None else t
+            return self._on_sip(msg, self.sip_clock.stamp(arrival, self._queued.pop(id(pkt), 0)))
         if isinstance(msg, EncoderPacket):
             self.encoders = msg
         elif isinstance(msg, ConfigPacket):

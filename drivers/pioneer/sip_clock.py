@@ -7,12 +7,14 @@ early), so the lower envelope of (k, arrival) is the clock (``drivers.clock.Cloc
 fits P, so time_scale is only its first guess). A stamp is the envelope at k: the send time plus the
 fixed latency L, which cannot be told apart from it without a clock on the robot.
 
-The index k follows the cycle, not the packet count: a SIP lost on the link (bad checksum, a pty hiccup)
-makes every later arrival at least a cycle late, so SIPs that stay more than half a cycle late for a few
-cycles of arrival time are a gap and k skips it; a burst of SIPs that a stalled host reads together is
-late by many cycles but only until the stall ends, so it does not move k. A SIP more than half a cycle
-before the envelope means k ran ahead, and k steps back. Until the envelope has a slope a SIP is
-stamped with its arrival. Stamps never exceed the arrival and never go back.
+The index k follows the cycle, not the packet count. SIPs read together with more after them
+(``queued``) are a burst that a stalled host read late, each a cycle before the next: they take the next
+indices, so a stall does not move k. A SIP that arrives at least 0.9 of a cycle after the envelope is
+either late or follows lost SIPs (bad checksum, a pty hiccup, a controller that skipped cycles): it is
+stamped with its arrival, as without the clock, and kept out of the envelope; if the SIP of the next read
+is as many whole cycles late, SIPs were lost and k skips them. A SIP more than half a cycle before the
+envelope means k ran ahead, and k steps back. Until the envelope has a slope a SIP is stamped with its
+arrival. Stamps never exceed the arrival and never go back.
 """
 
 from __future__ import annotations
@@ -27,17 +29,13 @@ DEFAULT_SIP_CYCLE = 0.1  # s (robot time): the ARCOS/P2OS default
 class SipClock:
     """Stamps SIPs of one link: feed each SIP's arrival (host s) to :meth:`stamp`; :meth:`reset` per link.
 
-    cycle: SIP cycle (robot s); time_scale: robot seconds per host second, the first guess of the rate;
-    gap_cycles: cycles of arrival time SIPs must stay late before a gap is accepted.
+    cycle: SIP cycle (robot s); time_scale: robot seconds per host second, the first guess of the rate.
     """
 
-    def __init__(self, cycle: float = DEFAULT_SIP_CYCLE, *, time_scale: float = 1.0,
-                 gap_cycles: float = 3.0) -> None:
-        if cycle <= 0 or time_scale <= 0 or gap_cycles <= 0:
-            raise ValueError(f"SipClock: cycle, time_scale and gap_cycles must be > 0, got {cycle}, "
-                             f"{time_scale}, {gap_cycles}")
+    def __init__(self, cycle: float = DEFAULT_SIP_CYCLE, *, time_scale: float = 1.0) -> None:
+        if cycle <= 0 or time_scale <= 0:
+            raise ValueError(f"SipClock: cycle and time_scale must be > 0, got {cycle}, {time_scale}")
         self.time_scale = float(time_scale)
-        self.gap_cycles = float(gap_cycles)
         self.gaps = 0  # SIPs found missing (index skipped)
         self.rewinds = 0  # times the index ran ahead of the envelope and stepped back
         self.cycle = float(cycle)
@@ -60,43 +58,40 @@ class SipClock:
         self._mapper = ClockMapper(block=8, window=40, jump_tolerance=math.inf, default_latency=0.0)
         self._index = -1
         self._last: float | None = None
-        self._late_since: float | None = None  # arrival of the first SIP of the current run of late ones
-        self._late_count = 0
-        self._late_min = math.inf
+        self._suspect = (0, -math.inf)  # (cycles late, arrival) of a previous SIP too late to tell
 
-    def stamp(self, arrival: float) -> float:
-        """Host stamp (s) of the next SIP, which arrived at host time ``arrival`` (s)."""
-        k = self._index + 1
-        if self._mapper.fitted:
-            k += self._correction(k, arrival)
-        self._index = k
-        t = min(self._mapper.observe(k * self._guess, arrival), arrival)
+    def stamp(self, arrival: float, queued: int = 0) -> float:
+        """Host stamp (s) of the next SIP, which arrived at host time ``arrival`` (s) in a read that held
+        ``queued`` more SIPs after it."""
+        self._index += 1
+        t = arrival
+        if not self._mapper.fitted or self._on_cycle(arrival, queued):
+            t = min(self._mapper.observe(self._index * self._guess, arrival), arrival)
         if self._last is not None:
             t = max(t, self._last)
         self._last = t
         return t
 
-    def _correction(self, k: int, arrival: float) -> int:
-        """Cycles to add to the counted index ``k``: > 0 after a confirmed gap, < 0 if it ran ahead."""
+    def _on_cycle(self, arrival: float, queued: int) -> bool:
+        """Correct the index for lost SIPs or a run ahead; False if this SIP is too late to tell."""
         period = self.period
-        late = arrival - self._mapper.host_time(k * self._guess)
-        if late < -0.5 * period:
+        late = (arrival - self._mapper.host_time(self._index * self._guess)) / period  # cycles
+        if late < -0.5:
             self.rewinds += 1
-            self._late_since = None
-            return -round(-late / period)
-        if late < 0.5 * period:
-            self._late_since = None
-            return 0
-        if self._late_since is None:
-            self._late_since, self._late_count, self._late_min = arrival, 0, math.inf
-        self._late_count += 1
-        self._late_min = min(self._late_min, late)
-        if self._late_count >= 3 and arrival - self._late_since >= self.gap_cycles * period:
-            skip = round(self._late_min / period)
-            self.gaps += skip
-            self._late_since = None
-            return skip
-        return 0
+            self._index -= round(-late)
+            return True
+        if queued:  # a burst: the host was late, its SIPs each take the next cycle
+            return True
+        behind = math.floor(late + 0.1)
+        suspect, self._suspect = self._suspect, (behind, arrival)
+        if behind <= 0:
+            return True
+        if behind != suspect[0] or arrival <= suspect[1]:
+            return False
+        self._index += behind
+        self.gaps += behind
+        self._suspect = (0, arrival)
+        return True
 
 
 __all__ = ["DEFAULT_SIP_CYCLE", "SipClock"]
