@@ -559,17 +559,17 @@ class PioneerEmulator:
             self._tick_task = asyncio.ensure_future(self._tick_loop())
 
     async def _tick_loop(self) -> None:
+        # A controller's cycle: SIP n reports the robot at n * sip_period however late this loop runs it, and
+        # a loop that fell far behind (a loaded machine) skips whole cycles rather than bursting or drifting.
         period = self.sip_period / self.time_scale
-        last = self.now()
         next_t = time.monotonic()
         while True:
             next_t += period
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
-            if time.monotonic() - next_t > 5 * period:  # fell far behind (loaded machine): do not burst
-                next_t = time.monotonic()
+            skipped = max(int((time.monotonic() - next_t) / period) - 4, 0)  # > 5 periods behind: skip
+            next_t += skipped * period
             now = self.now()
-            dt = min(now - last, 5 * self.sip_period)
-            last = now
+            dt = (1 + skipped) * self.sip_period
             try:
                 self._cycle(now, dt)
             except Exception:  # keep the controller alive; a bug here must show in the log
