@@ -70,11 +70,24 @@ class TruthLog:
         np.save(path, np.asarray(self.rows, np.float64).reshape(-1, 4))
 
 
+def _pose_at(robot, t: float | None, cycle: float | None, speed: float) -> np.ndarray:
+    """The robot's true pose (x, y, yaw; map frame) at monotonic time ``t`` (s): its state at the controller's
+    last cycle (monotonic ``cycle``) moved on at its velocity, so a scan shows the pose of its stamp however
+    late the emulator's loop runs (the controller steps the robot once per SIP cycle)."""
+    pose = robot.true_pose
+    if t is None or cycle is None:
+        return pose
+    dt = (t - cycle) * speed  # robot seconds
+    v, w = robot.velocity
+    return np.array([pose[0] + v * dt * np.cos(pose[2] + 0.5 * w * dt),
+                     pose[1] + v * dt * np.sin(pose[2] + 0.5 * w * dt), pose[2] + w * dt])
+
+
 async def serve(world_name: str, speed: float, seed: int, seen_path: str | None = None, out=sys.stdout,
                 truth_path: str | None = None) -> int:
     from drivers.hokuyo.emulator import HokuyoEmulator, sim_scan_source
     from drivers.pioneer.emulator import PioneerEmulator
-    from glassmap.sim.robot import DiffDriveRobot, RobotParams
+    from glassmap.sim.robot import DiffDriveRobot, RobotParams, compose
     from glassmap.sim.world import load_world
 
     world = load_world(world_name)
@@ -84,8 +97,9 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
     truth = TruthLog()
 
     def laser_pose(t: float):  # called once per scan, at the pose the scan is ranged from
-        truth.add(t, robot.true_pose)
-        return robot.laser_pose()
+        pose = _pose_at(robot, hokuyo.loop_time(t), pioneer.cycle_monotonic, speed)
+        truth.add(t, pose)
+        return compose(pose, np.asarray(robot.params.laser_offset, np.float64))
 
     source = sim_scan_source(world, laser_pose, seed + 1, on_scan=seen.add)
     hokuyo = HokuyoEmulator(source, time_scale=speed)

@@ -248,6 +248,11 @@ class HokuyoEmulator:
         self.taps: list[Callable[[str, float, bytes], None]] = []
 
     # -- time ---------------------------------------------------------------------------------------
+    def loop_time(self, t: float) -> float | None:
+        """Event-loop time (s; time.monotonic() on the default loop) of emulated time ``t``; None before
+        the emulator has served."""
+        return None if self._real0 is None else self._real0 + t / self.time_scale
+
     def now(self) -> float:
         """Emulated seconds since the emulator started serving."""
         loop = asyncio.get_running_loop()

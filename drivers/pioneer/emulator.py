@@ -177,6 +177,7 @@ class PioneerEmulator:
 
         self._rng = random.Random(self.faults.seed)
         self._t0 = time.monotonic()
+        self.cycle_monotonic: float | None = None  # time.monotonic() (s) of the cycle the robot was stepped to
         self._virtual_t: float | None = None  # emulated time when offline (go_offline)
         self._session = _SESSION_OPEN if self.faults.still_open else _SESSION_CLOSED
         self._still_open_pending = self.faults.still_open
@@ -568,6 +569,7 @@ class PioneerEmulator:
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
             skipped = max(int((time.monotonic() - next_t) / period) - 4, 0)  # > 5 periods behind: skip
             next_t += skipped * period
+            self.cycle_monotonic = next_t
             now = self.now()
             dt = (1 + skipped) * self.sip_period
             try:
