@@ -44,7 +44,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="training beams kept at most (glass first; 0 = all) (default: %(default)s)")
     p.add_argument("--angle-method", default="split-merge", choices=["split-merge", "hough"],
                    help="incidence-angle method (default: %(default)s)")
-    add_out(p, "out/classifier", "output directory: glass_<model>.pt/.json")
+    add_out(p, "out/classifier", "output directory: glass_<model>.npz/.pt/.json")
     p.add_argument("--replace-shipped", action="store_true",
                    help="write the weights into the package (glassmap/models/), replacing the shipped ones that "
                    "the runtime and the demo load")

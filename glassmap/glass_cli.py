@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse._SubParsersActi
                        description="Simulate labelled beams from generated training worlds (each with its own "
                        "laser and material parameters), train the 4-layer MLP of each model (class-balanced), with "
                        "early stopping and temperature scaling on generated validation worlds; or train / fine-tune "
-                       "on labelled recordings (`glassmap glass label`). Writes <out>/glass_<model>.pt/.json; the "
+                       "on labelled recordings (`glassmap glass label`). Writes <out>/glass_<model>.npz/.pt/.json; the "
                        "shipped weights change only with --replace-shipped. Test-world seeds (0-99) are refused.")
     classifier_cli.add_train_arguments(p)
     p.set_defaults(func=classifier_cli.cmd_train)
