@@ -5,11 +5,12 @@ its end point lies on, in [0, pi/2] rad. Everything is in the laser frame (metre
 point lies on no segment get NaN. Two line extractors, both returning per-beam segment labels:
 
 - ``"split-merge"``: breakpoints (range jumps, adaptive threshold) cut the scan into runs; each run is split
-  at its farthest point from the chord until every point is within tolerance (iterative end-point fit,
-  vectorized over all runs at once); adjacent collinear pieces are merged; a second pass does the same on
+  at its farthest point from the chord until every point is within tolerance (iterative end-point fit);
+  adjacent collinear pieces are merged; a second pass does the same on
   the points of the pieces that were too short, chained to near earlier points across gaps (so that glass
   returns interleaved with beams passing through the pane join their pane's line); each segment gets a total least squares fit
-  (moments via bincount).
+  (moments summed in point order). The point-by-point loops are compiled (:mod:`glassmap.angles_jit`);
+  the transcendental functions run in numpy.
 - ``"hough"``: the scan points are rasterised and scikit-image's Hough transform finds lines; points within
   a tolerance of a line are split into SEGMENTS along it (scan order, gaps break a segment), so a point is
   only given a line it actually lies on, not the infinite extension of a neighbouring wall; each segment is
@@ -23,6 +24,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+
+from .angles_jit import extents, link_chains, moments, split_pieces, tls_moments
 
 AngleMethod = Literal["split-merge", "hough"]
 METHODS: tuple[str, ...] = ("split-merge", "hough")
@@ -81,39 +84,19 @@ class IncidenceResult:
 
 def _moments(xy: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
     """Per-segment sums (n_seg, 6): count, sx, sy, sxx, syy, sxy."""
-    x, y = xy[:, 0], xy[:, 1]
-    m = np.empty((n_seg, 6))
-    for j, w in enumerate((None, x, y, x * x, y * y, x * y)):
-        m[:, j] = np.bincount(seg, w, minlength=n_seg)
-    return m
+    return moments(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), seg, n_seg)
 
 
 def _tls(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Total least squares lines from moments (k, 6): centroids (k, 2), unit normals (k, 2), rms (k,) m."""
-    n = np.maximum(m[:, 0], 1.0)
-    q = m[:, 1:] / n[:, None]  # mean x, mean y, sxx / n, syy / n, sxy / n
-    cen = q[:, :2]
-    cov = q[:, 2:]
-    cov -= cen[:, _COV_A] * cen[:, _COV_B]  # cxx, cyy, cxy
-    cxx, cyy, cxy = cov[:, 0], cov[:, 1], cov[:, 2]
-    phi = np.arctan2(2.0 * cxy, cxx - cyy)
+    cen, args, rms = tls_moments(m)
+    phi = np.arctan2(args[0], args[1])
     phi *= 0.5  # direction of the line
     normals = np.empty_like(cen)
     np.sin(phi, out=normals[:, 0])
     normals[:, 0] *= -1.0
     np.cos(phi, out=normals[:, 1])
-    tr = cxx + cyy
-    det = cxx * cyy
-    det -= cxy * cxy
-    disc = 0.25 * tr
-    disc *= tr
-    disc -= det
-    lam_min = 0.5 * tr
-    lam_min -= np.sqrt(np.maximum(disc, 0.0, out=disc), out=disc)
-    return cen, normals, np.sqrt(np.maximum(lam_min, 0.0, out=lam_min), out=lam_min)
-
-
-_COV_A, _COV_B = np.array([0, 1, 0]), np.array([0, 1, 1])  # columns of the products mx mx, my my, mx my
+    return cen, normals, rms
 
 
 def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float):
@@ -142,77 +125,13 @@ def _breaks(idx: np.ndarray, r: np.ndarray, xy: np.ndarray, dphi: float, p: Angl
     return brk
 
 
-_COMPRESS_MIN = 256
-"""The end-point fit drops the points of finished pieces from its arrays only while more than this many
-points are left: below it an array operation costs about the same whatever the length, and dropping them
-would cost five more operations per level."""
-
-
 def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Iterative end-point fit on all runs at once. Returns the final start mask.
-
-    The loop runs once per split level (a handful), each iteration a fixed number of array operations, so
-    the cost is per operation rather than per point: ndarray methods and ``take`` with index arrays where
-    they do the same as fancy indexing or boolean masks, more cheaply. A piece that is not split keeps its
-    chord and is never split later; its points are dropped while many points are left (``_COMPRESS_MIN``).
-    The farthest point of a piece is never its first one (distance 0, tolerance >= 0), so every level
-    adds a start inside each piece it splits."""
-    is_start = starts_mask.copy()
-    pts = np.arange(len(xy))
-    x, y = xy[:, 0].copy(), xy[:, 1].copy()
+    """Iterative end-point fit on all runs at once (:func:`glassmap.angles_jit.split_pieces`). Returns the
+    final start mask."""
     tol = p.split_tol + p.split_tol_rel * r
     min_len = max(p.min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
-    for _ in range(p.max_split_iterations):
-        n = pts.size
-        if n == 0:
-            break
-        sub_start = is_start.take(pts)
-        seg = sub_start.cumsum()
-        seg -= 1
-        starts = sub_start.nonzero()[0]
-        ends = np.empty_like(starts)
-        ends[:-1] = starts[1:]
-        ends[-1] = n
-        ends -= 1
-        # per piece: the chord from its first to its last point as a x + b y + c = 0 (unit normal (a, b))
-        fx, fy = x.take(starts), y.take(starts)
-        dx, dy = x.take(ends) - fx, y.take(ends) - fy
-        length = np.hypot(dx, dy)
-        degenerate = length <= 1e-9 if length.min() <= 1e-9 else None
-        if degenerate is not None:
-            length[degenerate] = 1.0
-        a, b = -dy / length, dx / length
-        c = -(a * fx + b * fy)
-        dist = a.take(seg) * x
-        dist += b.take(seg) * y
-        dist += c.take(seg)
-        dist = np.abs(dist, out=dist)
-        if degenerate is not None:  # a closed piece: distance to its first point
-            dg = degenerate[seg].nonzero()[0]
-            dist[dg] = np.hypot(x[dg] - fx[seg[dg]], y[dg] - fy[seg[dg]])
-        excess = dist
-        excess -= tol
-        seg_max = np.maximum.reduceat(excess, starts)
-        split_seg = seg_max > 0
-        split_seg &= ends - starts >= min_len
-        n_split = np.count_nonzero(split_seg)
-        if n_split == 0:
-            break
-        in_split = split_seg.take(seg)
-        cand = excess == seg_max.take(seg)
-        cand &= in_split
-        cand = cand.nonzero()[0]
-        if cand.size > n_split:  # ties: the first farthest point of each piece
-            cs = seg.take(cand)
-            first = np.empty(cand.size, dtype=bool)
-            first[0] = True
-            np.not_equal(cs[1:], cs[:-1], out=first[1:])
-            cand = cand[first]
-        is_start[pts.take(cand)] = True
-        if n > _COMPRESS_MIN:
-            keep = in_split.nonzero()[0]
-            pts, x, y, tol = pts.take(keep), x.take(keep), y.take(keep), tol.take(keep)
-    return is_start
+    return split_pieces(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), tol, starts_mask,
+                        min_len, p.max_split_iterations)
 
 
 def _merge(xy: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: AngleParams) -> np.ndarray:
@@ -283,22 +202,15 @@ def _quality(xy: np.ndarray, seg: np.ndarray, n_seg: int, p: AngleParams):
     """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
     mom = _moments(xy, seg, n_seg)
     cen, normals, rms = _tls(mom)
-    # coordinate along the segment's direction
-    along = xy[:, 0] - cen[:, 0].take(seg)
-    along *= normals[:, 1].take(seg)
-    along -= (xy[:, 1] - cen[:, 1].take(seg)) * normals[:, 0].take(seg)
-    lo = np.full(n_seg, np.inf)
-    hi = np.full(n_seg, -np.inf)
-    np.minimum.at(lo, seg, along)
-    np.maximum.at(hi, seg, along)
-    keep = (mom[:, 0] >= p.min_points) & (hi - lo >= p.min_length) & (rms <= p.max_rms)
+    length = extents(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), seg, cen, normals)
+    keep = (mom[:, 0] >= p.min_points) & (length >= p.min_length) & (rms <= p.max_rms)
     return mom, cen, normals, keep
 
 
 def _requality(xy: np.ndarray, seg: np.ndarray, n_seg: int, first: tuple, left: np.ndarray, p: AngleParams):
     """:func:`_quality` after the second pass, fitting only the segments with points in ``left`` (the
     points of the first pass's rejected segments); the first pass's good segments keep their fits, which
-    are the same numbers (bincount adds each segment's points in the same order)."""
+    are the same numbers (the moments add each segment's points in the same order)."""
     mom, cen, normals, keep = _quality(xy[left], seg.take(left), n_seg, p)
     kept = first[3].nonzero()[0]
     mom[kept], cen[kept], normals[kept], keep[kept] = first[0][kept], first[1][kept], first[2][kept], True
@@ -312,8 +224,8 @@ def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, se
     Glass returns come in short fragments interleaved with beams that passed through the pane (which range
     an object behind it, itself fragmented). Each leftover point links to the nearest earlier leftover
     point (up to ``link_lag`` points back) that is as close as a breakpoint-free neighbour would be for
-    that beam gap; the resulting chains (roots by pointer jumping) are split and merged like runs. All
-    vectorized over points; the loop runs over pointer-jumping steps. ``keep``: the first pass's good
+    that beam gap (:func:`glassmap.angles_jit.link_chains`); the resulting chains are split and merged like
+    runs. ``keep``: the first pass's good
     segments. Returns the segment labels, their number and the points whose segment may have changed
     (None: none did).
     """
@@ -321,42 +233,12 @@ def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, se
     m = left.size
     if m < p.min_points:
         return seg, n_seg, None
-    sx, sr, si = xy[left], r[left], idx[left]
-    ar = np.arange(m)
-    parent = ar.copy()
-    k = dphi / math.sin(p.break_lambda)
-    # all lags at once: (m, lags) candidate earlier points j = i - lag; a point links to the nearest one
-    lags = np.arange(1, min(p.link_lag, m - 1) + 1)
-    j = ar[:, None] - lags
-    before = j >= 0
-    np.maximum(j, 0, out=j)
-    gx, gy = sx[:, 0].copy(), sx[:, 1].copy()
-    d = np.hypot(gx[:, None] - gx.take(j), gy[:, None] - gy.take(j))
-    thr = np.minimum(sr[:, None], sr.take(j))
-    thr *= si[:, None] - si.take(j)
-    thr *= k
-    thr += 3.0 * p.break_sigma
-    link = d <= thr
-    link &= before
-    nearest = link.argmax(axis=1)
-    linked = link[ar, nearest]
-    parent[linked] = ar[linked] - lags[nearest[linked]]
-    for _ in range(32):
-        pp = parent[parent]
-        if (pp == parent).all():
-            break
-        parent = pp
-    # chains shorter than min_points cannot give a segment: leave them out
-    big = np.bincount(parent, minlength=m)[parent] >= p.min_points
-    if not big.any():
+    sx = xy[left]
+    order, brk = link_chains(sx[:, 0].copy(), sx[:, 1].copy(), r[left], idx[left],
+                             dphi / math.sin(p.break_lambda), 3.0 * p.break_sigma, p.link_lag, p.min_points)
+    if order.size == 0:
         return seg, n_seg, None
-    order = big.nonzero()[0]
-    order = order[np.argsort(parent[order], kind="stable")]
-    root = parent[order]
-    m = order.size
-    brk = np.ones(m, dtype=bool)
-    brk[1:] = root[1:] != root[:-1]
-    px, pr = sx[order], sr[order]
+    px, pr = sx[order], r[left[order]]
     is2 = _merge(px, _split(px, pr, brk, p), brk, p)
     seg = seg.copy()
     seg[left[order]] = n_seg + np.cumsum(is2) - 1
