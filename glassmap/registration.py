@@ -1,6 +1,6 @@
 """Registration of per-beam glass probabilities onto grid cells (docs/method.md section 3, eq. 6).
 
-Pure numpy, vectorized over beams (no per-beam loop). Frames: end points are in the map frame (metres);
+numpy, vectorized over beams, with the per-cell loops compiled (:mod:`glassmap.registration_jit`). Frames: end points are in the map frame (metres);
 cells are (ix, iy) of a :class:`~glassmap.grid.MapGrid`, flat index ``iy * width + ix``.
 
 - :func:`nearest_occupied_cells` finds c_hat_j: the occupied cell nearest to each beam end point within a
@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+
+from .registration_jit import nearest_cells, sum_runs, window_observations
 
 Method = Literal["direct", "robust"]
 DecayRef = Literal["cell", "endpoint"]
@@ -87,36 +89,10 @@ def nearest_occupied_cells(end_xy: np.ndarray, origin: np.ndarray, resolution: f
     """
     end_xy = np.asarray(end_xy, dtype=np.float64)
     f = (end_xy - origin) / resolution
-    base = np.floor(f).astype(np.int64)
-    h, w = occ_log_odds.shape
-    flat_lo = occ_log_odds.reshape(-1)
-    found = np.zeros(base.shape[0], dtype=bool)
-    ok = _inside(base, (h, w), 0)
-    found[ok] = flat_lo[base[ok, 1] * w + base[ok, 0]] > occ_threshold_log_odds
-    if search_radius <= 0:
-        return base, found
-    # beams whose end-point cell is not occupied and whose whole search window lies inside the grid
-    look = np.flatnonzero(~found & _inside(base, (h, w), search_radius))
-    if look.size == 0:
-        return base, found
-    offs = window_offsets(2 * search_radius + 1)
+    offs = window_offsets(2 * max(search_radius, 0) + 1)
     offs = offs[(offs[:, 0] != 0) | (offs[:, 1] != 0)]  # the centre is known to be free/unknown
-    bl = base[look]
-    flat = (bl[:, 1] * w + bl[:, 0])[:, None] + (offs[:, 1] * w + offs[:, 0])[None, :]
-    occ = flat_lo[flat] > occ_threshold_log_odds  # (m, q)
-    hit = occ.any(axis=1)
-    if not hit.any():
-        return base, found
-    look, bl, occ = look[hit], bl[hit], occ[hit]
-    frac = (f[look] - bl).astype(np.float32)  # position inside the end-point cell, [0, 1)
-    dx = (offs[:, 0].astype(np.float32) + 0.5)[None, :] - frac[:, 0:1]
-    dy = (offs[:, 1].astype(np.float32) + 0.5)[None, :] - frac[:, 1:2]
-    d2 = np.where(occ, dx * dx + dy * dy, np.float32(np.inf))
-    best = np.argmin(d2, axis=1)
-    cells = base.copy()
-    cells[look] = bl + offs[best]
-    found[look] = True
-    return cells, found
+    h, w = occ_log_odds.shape
+    return nearest_cells(f, occ_log_odds.reshape(-1), w, h, occ_log_odds.dtype.type(occ_threshold_log_odds), offs)
 
 
 @dataclass(frozen=True)
@@ -155,25 +131,16 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
         # evaluated once per beam and distance, then spread over the window
         dist, spread = _window_distances(k, float(resolution))
         pc = np.clip(decayed_probability(p[:, None], dist[None, :], sig), p_clip, 1.0 - p_clip)
-        lo = logit(pc).take(spread, axis=1)
+        lo = logit(pc)
     elif decay_ref == "endpoint":
         centres = origin + (centre_cells[:, None, :] + offs[None, :, :] + 0.5) * resolution
         d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]
         dist = np.hypot(d[..., 0], d[..., 1])
         lo = logit(np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip))
+        spread = np.arange(k * k)
     else:
         raise ValueError(f"decay reference must be 'cell' or 'endpoint', got {decay_ref!r}")
-    flat = (centre_cells[:, 1] * w + centre_cells[:, 0])[:, None] + (offs[:, 1] * w + offs[:, 0])[None, :]
-    inside = _inside(centre_cells, shape, k // 2)
-    if inside.all():
-        ok = lo != 0.0
-        if ok.all():  # the usual case: no mask to apply
-            return Observations(flat.ravel(), lo.ravel())
-    else:
-        cx = centre_cells[:, 0:1] + offs[None, :, 0]
-        cy = centre_cells[:, 1:2] + offs[None, :, 1]
-        ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h) & (lo != 0.0)
-    return Observations(flat[ok], lo[ok])
+    return Observations(*window_observations(centre_cells, lo, spread, offs, w, h))
 
 
 def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:
@@ -187,39 +154,23 @@ def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.
         raise ValueError(f"aggregation must be 'scan' or 'beam', got {aggregation!r}")
     if obs.flat.size == 0:
         return obs.flat.astype(np.int64), obs.log_odds.astype(np.float64)
+    # sort (cell, observation) keys packed in one int64 (a plain sort is several times cheaper than a
+    # stable argsort), then add up each cell's observations in observation order
     lo_idx, hi_idx = int(obs.flat.min()), int(obs.flat.max())
-    span = hi_idx - lo_idx + 1
     m = obs.flat.size
-    if span <= 8 * m + 1024:
-        # dense bincount over a compact touched index range: cheaper than sorting
-        local = obs.flat - lo_idx
-        count = np.bincount(local, minlength=span)
-        uniq_local = np.flatnonzero(count)
-        total = np.bincount(local, weights=obs.log_odds, minlength=span)[uniq_local]
-        uniq, count = uniq_local + lo_idx, count[uniq_local]
+    shift = max(m.bit_length(), 1)
+    if hi_idx - lo_idx < 1 << (62 - shift):
+        key = obs.flat - lo_idx
+        key <<= shift
+        key |= np.arange(m)
+        key.sort()
+        order = key & ((1 << shift) - 1)
+        key >>= shift
+        key += lo_idx
     else:
-        # a wide map makes a scan's cells span whole rows: sort (cell, observation) keys packed in one
-        # int64, a plain sort being several times cheaper than the argsort inside np.unique
-        shift = max(m.bit_length(), 1)
-        if lo_idx < 0 or span >= 1 << (62 - shift):
-            uniq, inv, count = np.unique(obs.flat, return_inverse=True, return_counts=True)
-        else:
-            key = obs.flat - lo_idx
-            key <<= shift
-            key |= np.arange(m)
-            key.sort()
-            order = key & ((1 << shift) - 1)
-            key >>= shift
-            head = np.empty(m, dtype=bool)
-            head[0] = True
-            np.not_equal(key[1:], key[:-1], out=head[1:])
-            inv = np.empty(m, dtype=np.int64)
-            inv[order] = head.cumsum() - 1
-            uniq = key[head]
-            uniq += lo_idx
-            count = np.bincount(inv, minlength=uniq.size)
-        # accumulated in observation order either way: the same sums
-        total = np.bincount(inv, weights=obs.log_odds, minlength=uniq.size)
+        order = np.argsort(obs.flat, kind="stable")
+        key = obs.flat[order]
+    uniq, total, count = sum_runs(key, order, obs.log_odds.astype(np.float64, copy=False))
     if aggregation == "beam":
         return uniq, total
     return uniq, total / count
