@@ -1,4 +1,5 @@
-"""Per-beam input features of the glass classifiers, computed for a whole scan at once (vectorized).
+"""Per-beam input features of the glass classifiers, computed for a whole scan at once (numpy, with the
+per-beam loops of the context model compiled in :mod:`glassmap.features_jit`).
 
 Two feature sets, one per named model:
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .angles import IncidenceResult
+from .features_jit import context_columns, segment_order
 
 BASELINE_FEATURES = ("log1p(intensity)", "distance_m", "incidence_rad")
 CONTEXT_FEATURES = BASELINE_FEATURES + (
@@ -27,37 +29,6 @@ CONTEXT_FEATURES = BASELINE_FEATURES + (
 )
 FEATURES = {"baseline": BASELINE_FEATURES, "context": CONTEXT_FEATURES}
 MODELS = tuple(FEATURES)
-
-
-_PAD = 10  # beams of padding on each side of the scan (the widest neighbourhood)
-
-
-def _padded(a: np.ndarray, fill: float) -> np.ndarray:
-    """``a`` with _PAD values ``fill`` on each side: element i of the scan is at i + _PAD."""
-    out = np.full(a.shape[0] + 2 * _PAD, fill)
-    out[_PAD:_PAD + a.shape[0]] = a
-    return out
-
-
-def _window7(n: int) -> np.ndarray:
-    """Beams in [i - 3, i + 3] inside a scan of n beams."""
-    i = np.arange(n)
-    return (np.minimum(i + 4, n) - np.maximum(i - 3, 0)).astype(np.float64)
-
-
-_WINDOW7 = {1081: _window7(1081)}
-
-
-def _running_max(pad: np.ndarray, w: int, n: int) -> np.ndarray:
-    """max(a[i - w .. i + w]) for i < n from ``_padded(a, -inf)`` (w <= _PAD), by doubling windows."""
-    m, width = pad, 1
-    while 2 * width <= 2 * w + 1:
-        m = np.maximum(m[:-width], m[width:])  # m[j] = max(pad[j .. j + 2 width - 1])
-        width *= 2
-    rest = 2 * w + 1 - width
-    if rest:
-        m = np.maximum(m[:-rest], m[rest:])
-    return m[_PAD - w:_PAD - w + n]
 
 
 def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, intensities: np.ndarray,
@@ -74,89 +45,31 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
         raise ValueError(f"unknown classifier model {model!r}; models: {', '.join(MODELS)}")
     r = np.asarray(ranges, dtype=np.float64)
     n = r.shape[0]
-    ok_r = np.isfinite(r)
     i = np.asarray(intensities, dtype=np.float64)
     li = np.log1p(np.where(i > 0.0, i, 0.0))  # NaN compares False: 0
-    k = len(FEATURES[model])
-    x = np.empty((n, k), dtype=np.float32)
-    x[:, 0] = li
-    x[:, 1] = np.where(ok_r, r, 0.0)
-    a = np.abs(inc.incidence)
-    x[:, 2] = np.where(a >= 0.0, a, 0.0)
+    x = np.empty((n, len(FEATURES[model])), dtype=np.float32)
     if model == "baseline":
+        x[:, 0] = li
+        x[:, 1] = np.where(np.isfinite(r), r, 0.0)
+        a = np.abs(inc.incidence)
+        x[:, 2] = np.where(a >= 0.0, a, 0.0)
         return x
-
-    # echoes: the last finite extra echo beyond the first
-    if echoes is not None:
-        e = np.asarray(echoes, dtype=np.float64).reshape(n, -1)
-        with np.errstate(invalid="ignore"):
-            fin = (np.abs(e - r[:, None]) > 1e-6) & np.isfinite(e)
-        two = fin.any(axis=1)
-        col = e.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
-        rows = np.arange(n)
-        gap = e[rows, col] - r
-        x[:, 4] = np.where(two, np.minimum(np.maximum(gap, -5.0), 10.0), 0.0)
-        if echo_intensities is not None:
-            ei = np.asarray(echo_intensities, dtype=np.float64).reshape(n, -1)[rows, col]
-            x[:, 5] = np.where(two & (ei > 0.0), np.log1p(np.where(ei > 0.0, ei, 0.0)), 0.0)
-        else:
-            x[:, 5] = 0.0
+    if echoes is None:
+        e = lei = np.empty((n, 0))
     else:
-        two = np.zeros(n, dtype=bool)
-        x[:, 4:6] = 0.0
-    x[:, 3] = 1.0 + two
-
-    # neighbours along the scan (beams without a reading count as the centre's value)
-    lv = _padded(np.where(ok_r, li, np.nan), np.nan)
-    for j, k in enumerate((-2, -1, 1, 2)):
-        d = lv[_PAD + k:_PAD + k + n] - li
-        x[:, 6 + j] = np.where(d == d, d, 0.0)
-    lm = _padded(np.where(ok_r, li, -np.inf), -np.inf)
-    x[:, 10] = np.maximum(_running_max(lm, 3, n), li) - li
-    x[:, 11] = np.maximum(_running_max(lm, 10, n), li) - li
-    rv = np.where(ok_r, r, np.nan)
-    rp = np.empty(n)
-    rm = np.empty(n)
-    rp[:-1], rp[-1] = rv[1:], rv[-1]  # the first and last beam take themselves as the missing neighbour
-    rm[1:], rm[0] = rv[:-1], rv[0]
-    slope = np.abs(rp - rm) * 0.5
-    x[:, 12] = np.where(slope <= 1.0, slope, 1.0)  # NaN (a neighbour without a range) -> 1
-    tp = np.zeros(n + 7)
-    tp[3:n + 3] = two
-    c = np.cumsum(tp)  # c[j] = sum of tp[0 .. j]
-    w7 = _WINDOW7.get(n)
-    x[:, 13] = (c[6:n + 6] - np.concatenate(([0.0], c[:n - 1]))) / (w7 if w7 is not None else _window7(n))
-
-    # place on the line segment (groups of beams by segment id, via one sort)
-    seg = inc.segment
-    x[:, 14] = 1.0
-    x[:, 15:19] = 0.0
-    on = np.flatnonzero(seg >= 0)
-    if on.size:
-        order = on[np.argsort(seg[on], kind="stable")]  # beams grouped by segment, in beam order
-        s_sorted = seg[order]
-        brk = np.empty(order.size, dtype=bool)
-        brk[0] = True
-        np.not_equal(s_sorted[1:], s_sorted[:-1], out=brk[1:])
-        starts = np.flatnonzero(brk)
-        ends = np.empty_like(starts)
-        ends[:-1] = starts[1:]
-        ends[-1] = order.size
-        cnt = (ends - starts).astype(np.float64)
-        grp = np.repeat(np.arange(starts.size), ends - starts)
-        idx = order.astype(np.float64)
-        lo_i, hi_i = idx[starts], idx[ends - 1]
-        mid = 0.5 * (lo_i + hi_i)
-        half = np.maximum(0.5 * (hi_i - lo_i), 0.5)
-        x[order, 14] = np.abs(idx - mid[grp]) / half[grp]
-        ang = beam_angles[order]
-        ro = r[order]
-        px, py = ro * np.cos(ang), ro * np.sin(ang)
-        ext = np.hypot(np.maximum.reduceat(px, starts) - np.minimum.reduceat(px, starts),
-                       np.maximum.reduceat(py, starts) - np.minimum.reduceat(py, starts))
-        x[order, 15] = np.log1p(ext)[grp]
-        lio = li[order]
-        x[order, 16] = (np.add.reduceat(lio, starts) / cnt)[grp] - lio
-        x[order, 17] = np.maximum.reduceat(lio, starts)[grp] - lio
-        x[order, 18] = (np.add.reduceat(two[order].astype(np.float64), starts) / cnt)[grp]
+        e = np.asarray(echoes, dtype=np.float64).reshape(n, -1)
+        if echo_intensities is None:
+            lei = np.empty((n, 0))
+        else:
+            ei = np.asarray(echo_intensities, dtype=np.float64).reshape(n, -1)
+            lei = np.log1p(np.where(ei > 0.0, ei, 0.0))
+    # the per-beam and per-segment loops are compiled; what they need of log1p, cos, sin and the
+    # (pairwise) sums per segment is computed here
+    order, starts, group = segment_order(np.asarray(inc.segment, dtype=np.int64), inc.n_segments)
+    ang = np.asarray(beam_angles, dtype=np.float64)[order]
+    ro = r[order]
+    lsum = np.add.reduceat(li[order], starts) if starts.size else np.zeros(0)
+    ext = context_columns(x, li, r, np.asarray(inc.incidence, dtype=np.float64), e, lei, order, starts, lsum,
+                          ro * np.cos(ang), ro * np.sin(ang))
+    x[order, 15] = np.log1p(ext)[group]
     return x
