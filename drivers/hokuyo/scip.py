@@ -259,8 +259,11 @@ def decode_scan_data(command: str, data: bytes | np.ndarray) -> tuple[np.ndarray
             raise BadValue(f"{command}: no data", command=command)
         orig = np.flatnonzero(~amp)[::rec]
         amp_at = np.flatnonzero(amp)
-        if amp_at.size and (amp_at[0] == 0 or not np.isin(amp_at + 1, orig).all()):
-            raise BadValue(f"{command}: '&' not followed by an echo", command=command)
+        if amp_at.size:
+            starts = np.zeros(a.size + 1, bool)  # the first character of each echo (one past the end: none)
+            starts[orig] = True
+            if amp_at[0] == 0 or not starts[amp_at + 1].all():
+                raise BadValue(f"{command}: '&' not followed by an echo", command=command)
         extra = np.zeros(nrec, bool)
         extra[1:] = amp[orig[1:] - 1]
         vals = decode_values(chars, width).reshape(nrec, -1)
