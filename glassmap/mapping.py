@@ -18,7 +18,7 @@ import numpy as np
 
 from .angles import AngleMethod, AngleParams, incidence_angles
 from .glass import GlassMap, GlassParams
-from .grid import OccupancyGrid
+from .grid import MapGrid, OccupancyGrid
 from .registration import Aggregation, DecayRef, Method, aggregate, nearest_occupied_cells, registration_observations
 from .types import Scan
 
@@ -232,6 +232,16 @@ class GlassMapper:
         if self.config.protect == "hits":
             self.grid[self.hits_layer].reshape(-1)[flat] = True
         return int(sel.sum())
+
+    def warm_up(self, scan: Scan) -> None:
+        """Run the per-scan path once on ``scan`` at the map origin on a scratch grid, leaving this mapper's
+        maps and counters alone: the first call of the network and of each compiled kernel in a process
+        costs tens of milliseconds, which would otherwise delay the first real scans."""
+        grid = MapGrid(resolution=self.grid.resolution)
+        scratch = GlassMapper(OccupancyGrid(grid, self.occupancy.params), self.config, classifier=self.classifier)
+        scratch._fallback = self._fallback
+        scratch.process(scan, np.zeros(3), 0.05)
+        self._fallback = scratch._fallback
 
     # -- the per-scan path ---------------------------------------------------------------------------------
     def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,

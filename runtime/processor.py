@@ -69,9 +69,9 @@ class MappingProcessor:
         return bool(getattr(self.mapper.classifier, "uses_echoes", False))
 
     def warm_up(self) -> None:
-        """Run the glass classification once on a synthetic scan (a room of 4 x 6 m), without touching the
-        maps or the pose: the first network call and the first pass through the numpy code cost tens of
-        milliseconds, which would otherwise delay the first real scans."""
+        """Run the glass path once on a synthetic scan (a room of 4 x 6 m) on a scratch grid, without
+        touching the maps or the pose: the first network call and the first call of each compiled kernel
+        cost tens of milliseconds, which would otherwise delay the first real scans."""
         from glassmap.types import LaserGeometry
 
         geo = LaserGeometry()
@@ -79,7 +79,7 @@ class MappingProcessor:
         with np.errstate(divide="ignore"):
             r = np.minimum(np.abs(2.0 / np.sin(a)), np.abs(3.0 / np.cos(a)))
         echoes = np.full((a.shape[0], 1), np.nan) if self.wants_echoes else None  # as the laser will send
-        self.mapper.classify(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo,
+        self.mapper.warm_up(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo,
                                   echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))
 
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:

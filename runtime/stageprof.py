@@ -69,15 +69,17 @@ def _resolve(module: str, path: str):
 
 @contextlib.contextmanager
 def timed_stages(times: StageTimes) -> Iterator[StageTimes]:
-    """Wrap the functions of :data:`STAGES` for the duration of the block (re-entrant calls count once)."""
+    """Wrap the functions of :data:`STAGES` for the duration of the block (re-entrant calls count once;
+    the stages below the whole scan count only inside a scan, not in a warm-up)."""
     patched = []
+    scan = [0]  # whole-scan calls in progress
     try:
         for _, label, module, path in STAGES:
             owner, name = _resolve(module, path)
             fn = owner.__dict__[name] if isinstance(owner, type) else getattr(owner, name)
             times.cpu.setdefault(label, 0.0)
             times.calls.setdefault(label, 0)
-            setattr(owner, name, _timed(fn, label, times))
+            setattr(owner, name, _timed(fn, label, times, scan))
             patched.append((owner, name, fn))
         yield times
     finally:
@@ -85,14 +87,17 @@ def timed_stages(times: StageTimes) -> Iterator[StageTimes]:
             setattr(owner, name, fn)
 
 
-def _timed(fn, label: str, times: StageTimes):
+def _timed(fn, label: str, times: StageTimes, scan: list[int]):
     depth = [0]
+    top = label == STAGES[0][1]
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        if depth[0]:
+        if depth[0] or not (top or scan[0]):
             return fn(*args, **kwargs)
         depth[0] += 1
+        if top:
+            scan[0] += 1
         t = time.thread_time()
         try:
             return fn(*args, **kwargs)
@@ -100,17 +105,15 @@ def _timed(fn, label: str, times: StageTimes):
             times.cpu[label] += time.thread_time() - t
             times.calls[label] += 1
             depth[0] -= 1
+            if top:
+                scan[0] -= 1
     return wrapper
 
 
 def stage_profile(recording: str, source: str = "messages") -> StageTimes:
-    """Replay ``recording`` (all its scans, as fast as possible) with the stages timed. One-time costs of a
-    process (the compiled kernels' loading, the network's first call) are paid by a warm-up before timing,
-    as the live run pays them at start-up."""
-    from runtime.processor import MappingProcessor
-    from runtime.replay import recorded_config, replay_file
+    """Replay ``recording`` (all its scans, as fast as possible) with the stages timed."""
+    from runtime.replay import replay_file
 
-    MappingProcessor(recorded_config(recording).mapping).warm_up()
     times = StageTimes()
     with timed_stages(times):
         c0 = time.process_time()
