@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from glassmap.sim.cast_jit import mirror_pairs
 from glassmap.sim.materials import NOTHING, MaterialKind
 from glassmap.sim.world import World
 from glassmap.types import LaserGeometry, Scan
@@ -317,27 +318,12 @@ def cast_mirrored(opt: _Optics, pose: np.ndarray, geometry: LaserGeometry, beams
     sb = sa + opt.e[None, :, 0] * -uy[:, None] + opt.e[None, :, 1] * ux[:, None]
     side = np.sign(dist)[:, None]
     front = np.maximum(sa * side, sb * side) > 1e-9
-    lo = np.maximum(np.concatenate([k0, k0b], axis=1), bmin[:, None])
-    hi = np.where(np.concatenate([front, front], axis=1), np.minimum(np.concatenate([k1, k1b], axis=1), bmax[:, None]),
-                  -1)
-    lo = lo.astype(np.int64).ravel()
-    hi = hi.astype(np.int64).ravel()
-    m = len(opt.a)
-    pj = np.repeat(np.arange(nm), 2 * m)
-    pk = np.tile(np.concatenate([np.arange(m), np.arange(m)]), nm)
-    cnt = np.maximum(hi - lo + 1, 0)
-    total = int(cnt.sum())
-    jj = np.repeat(pj, cnt)
-    kk = np.repeat(pk, cnt)
-    ends = np.cumsum(cnt)
-    bb = np.arange(total) - np.repeat(ends - cnt - lo, cnt)
-    # keep the pairs whose beam is reflected by this mirror
+    # the (beam, mirror, segment) triples of each mirror's beams and the segments in front of it (compiled)
     beam_mirror = np.full(n, -1, dtype=np.int64)
     beam_mirror[beams] = inv
     t_min = np.zeros(n)
     t_min[beams] = t_mirror
-    ok = (beam_mirror[bb] == jj) & (kk != mirrors[jj])
-    bb, jj, kk = bb[ok], jj[ok], kk[ok]
+    bb, jj, kk = mirror_pairs(k0, k1, k0b, k1b, front, bmin, bmax, beam_mirror, mirrors)
     ang = phi2[jj] - (yaw + geometry.angles[bb])
     dx = np.cos(ang)
     dy = np.sin(ang)
