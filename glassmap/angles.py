@@ -25,7 +25,8 @@ from typing import Literal
 
 import numpy as np
 
-from .angles_jit import extents, link_chains, moments, split_pieces, tls_moments
+from .angles_jit import (adopt_fits, breaks, chain_points, labels, merge_pieces, moments, piece_moments, point_cosines,
+                         relabel, segment_keep, split_pieces, tls_moments)
 
 AngleMethod = Literal["split-merge", "hough"]
 METHODS: tuple[str, ...] = ("split-merge", "hough")
@@ -113,45 +114,6 @@ def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float)
     return a, r, idx, u, u * r[idx, None]
 
 
-def _breaks(idx: np.ndarray, r: np.ndarray, xy: np.ndarray, dphi: float, p: AngleParams) -> np.ndarray:
-    """bool (m,): point i starts a new run (adaptive breakpoint detector)."""
-    brk = np.ones(len(idx), dtype=bool)
-    if len(idx) > 1:
-        gap = np.diff(idx)
-        d = np.hypot(*(xy[1:] - xy[:-1]).T)
-        rr = np.minimum(r[:-1], r[1:])
-        thr = rr * (gap * dphi) / math.sin(p.break_lambda) + 3.0 * p.break_sigma
-        brk[1:] = (gap > p.max_index_gap + 1) | (d > thr)
-    return brk
-
-
-def _split(xy: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Iterative end-point fit on all runs at once (:func:`glassmap.angles_jit.split_pieces`). Returns the
-    final start mask."""
-    tol = p.split_tol + p.split_tol_rel * r
-    min_len = max(p.min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
-    return split_pieces(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), tol, starts_mask,
-                        min_len, p.max_split_iterations)
-
-
-def _merge(xy: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Merge neighbouring pieces of one run whose directions agree within merge_angle and whose joint fit
-    stays within max_rms (decided pairwise for all pieces at once)."""
-    starts = np.flatnonzero(is_start)
-    if len(starts) < 2:
-        return is_start
-    seg = np.cumsum(is_start) - 1
-    k = len(starts)
-    mom = _moments(xy, seg, k)
-    _, normals, rms = _tls(np.concatenate((mom, mom[1:] + mom[:-1])))  # the pieces, then adjacent pairs
-    normals, joint_rms = normals[:k], rms[k:]
-    cos = np.abs(np.einsum("ij,ij->i", normals[1:], normals[:-1]))
-    ok = ~run_start[starts[1:]] & (cos > math.cos(p.merge_angle)) & (joint_rms <= p.max_rms)
-    out = is_start.copy()
-    out[starts[1:][ok]] = False
-    return out
-
-
 def _finish(n: int, idx: np.ndarray, u: np.ndarray, xy: np.ndarray, seg: np.ndarray, n_seg: int,
             p: AngleParams, drop_last: bool = False, quality: tuple | None = None) -> IncidenceResult:
     """Fit every segment (unless ``quality``, the result of :func:`_quality` for these segments, is given),
@@ -163,48 +125,69 @@ def _finish(n: int, idx: np.ndarray, u: np.ndarray, xy: np.ndarray, seg: np.ndar
     mom, cen, normals, keep = _quality(xy, seg, n_seg, p) if quality is None else quality
     if drop_last:
         keep[-1] = False  # the bucket of points on no segment
-    new_id = np.cumsum(keep) - 1
-    on = keep.take(seg).nonzero()[0]
-    s = seg.take(on)
-    cosang = u[:, 0].take(on) * normals[:, 0].take(s)
-    cosang += u[:, 1].take(on) * normals[:, 1].take(s)
-    np.abs(cosang, out=cosang)
-    at = idx.take(on)
+    at, cosang, sid = point_cosines(np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1]), idx, seg, keep,
+                                    normals)
     incidence[at] = np.arccos(np.clip(cosang, 0.0, 1.0, out=cosang), out=cosang)
-    segment[at] = new_id.take(s)
+    segment[at] = sid
     return IncidenceResult(incidence, segment, normals[keep], cen[keep], mom[keep, 0].astype(np.int64))
 
 
 def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = AngleParams()) -> IncidenceResult:
     """Incidence angles from split-and-merge segments with total least squares fits."""
-    a, r, idx, u, xy = _valid_points(beam_angles, ranges, params.max_range)
+    p = params
+    a, r, idx, u, xy = _valid_points(beam_angles, ranges, p.max_range)
     n = a.shape[0]
-    if len(idx) < params.min_points:
-        return _finish(n, idx, u, xy, np.zeros(len(idx), dtype=np.int64), 0, params)
-    dphi = float(np.median(np.diff(a))) if n > 1 else 0.0
-    rv = r[idx]
-    run_start = _breaks(idx, rv, xy, abs(dphi), params)
-    is_start = _split(xy, rv, run_start, params)
-    is_start = _merge(xy, is_start, run_start, params)
-    seg = np.cumsum(is_start) - 1
-    n_seg = int(is_start.sum())
+    if len(idx) < p.min_points:
+        return _finish(n, idx, u, xy, np.zeros(len(idx), dtype=np.int64), 0, p)
+    dphi = abs(_median_step(a))
+    x, y, rv = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), r[idx]
+    run_start = breaks(idx, rv, x, y, dphi, math.sin(p.break_lambda), 3.0 * p.break_sigma, p.max_index_gap)
+    seg, n_seg = labels(_merge(x, y, _split(x, y, rv, run_start, p), run_start, p))
     quality = None
-    if params.link_lag > 0:
-        quality = _quality(xy, seg, n_seg, params)
-        seg, n_seg2, left = _second_pass(xy, rv, idx, abs(dphi), seg, n_seg, quality[3], params)
+    if p.link_lag > 0:
+        quality = _quality(xy, seg, n_seg, p)
+        seg, n_seg2, left = _second_pass(x, y, rv, idx, dphi, seg, n_seg, quality[3], p)
         if left is not None:
-            quality = _requality(xy, seg, n_seg2, quality, left, params)
+            quality = _requality(xy, seg, n_seg2, quality, left, p)
         n_seg = n_seg2
-    return _finish(n, idx, u, xy, seg, n_seg, params, quality=quality)
+    return _finish(n, idx, u, xy, seg, n_seg, p, quality=quality)
+
+
+def _median_step(a: np.ndarray) -> float:
+    """np.median(np.diff(a)) (0 for fewer than 2 angles), by a partial sort."""
+    if a.size < 2:
+        return 0.0
+    d = np.diff(a)
+    k = d.size // 2
+    if d.size % 2:
+        return float(np.partition(d, k)[k])
+    lo, hi = np.partition(d, (k - 1, k))[k - 1:k + 1]
+    return float((lo + hi) / 2.0)
+
+
+def _split(x: np.ndarray, y: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
+    """Iterative end-point fit on all runs at once (:func:`glassmap.angles_jit.split_pieces`). Returns the
+    final start mask."""
+    min_len = max(p.min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
+    return split_pieces(x, y, r, starts_mask, p.split_tol, p.split_tol_rel, min_len, p.max_split_iterations)
+
+
+def _merge(x: np.ndarray, y: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: AngleParams) -> np.ndarray:
+    """Merge neighbouring pieces of one run whose directions agree within merge_angle and whose joint fit
+    stays within max_rms (decided pairwise for all pieces at once)."""
+    starts, mom = piece_moments(x, y, is_start)
+    if len(starts) < 2:
+        return is_start
+    _, normals, rms = _tls(mom)  # the pieces, then adjacent pairs
+    return merge_pieces(is_start, starts, run_start, normals, rms, math.cos(p.merge_angle), p.max_rms)
 
 
 def _quality(xy: np.ndarray, seg: np.ndarray, n_seg: int, p: AngleParams):
     """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
-    mom = _moments(xy, seg, n_seg)
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    mom = moments(x, y, seg, n_seg)
     cen, normals, rms = _tls(mom)
-    length = extents(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), seg, cen, normals)
-    keep = (mom[:, 0] >= p.min_points) & (length >= p.min_length) & (rms <= p.max_rms)
-    return mom, cen, normals, keep
+    return mom, cen, normals, segment_keep(x, y, seg, mom, cen, normals, rms, p.min_points, p.min_length, p.max_rms)
 
 
 def _requality(xy: np.ndarray, seg: np.ndarray, n_seg: int, first: tuple, left: np.ndarray, p: AngleParams):
@@ -212,37 +195,28 @@ def _requality(xy: np.ndarray, seg: np.ndarray, n_seg: int, first: tuple, left: 
     points of the first pass's rejected segments); the first pass's good segments keep their fits, which
     are the same numbers (the moments add each segment's points in the same order)."""
     mom, cen, normals, keep = _quality(xy[left], seg.take(left), n_seg, p)
-    kept = first[3].nonzero()[0]
-    mom[kept], cen[kept], normals[kept], keep[kept] = first[0][kept], first[1][kept], first[2][kept], True
+    adopt_fits(mom, cen, normals, keep, *first)
     return mom, cen, normals, keep
 
 
-def _second_pass(xy: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, seg: np.ndarray, n_seg: int,
-                 keep: np.ndarray, p: AngleParams) -> tuple[np.ndarray, int, np.ndarray | None]:
+def _second_pass(x: np.ndarray, y: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, seg: np.ndarray,
+                 n_seg: int, keep: np.ndarray, p: AngleParams) -> tuple[np.ndarray, int, np.ndarray | None]:
     """Split-and-merge again on the points of the pieces that were too short.
 
     Glass returns come in short fragments interleaved with beams that passed through the pane (which range
     an object behind it, itself fragmented). Each leftover point links to the nearest earlier leftover
     point (up to ``link_lag`` points back) that is as close as a breakpoint-free neighbour would be for
-    that beam gap (:func:`glassmap.angles_jit.link_chains`); the resulting chains are split and merged like
-    runs. ``keep``: the first pass's good
-    segments. Returns the segment labels, their number and the points whose segment may have changed
-    (None: none did).
+    that beam gap (:func:`glassmap.angles_jit.chain_points`); the resulting chains are split and merged
+    like runs. ``keep``: the first pass's good segments. Returns the segment labels, their number and the
+    points whose segment may have changed (None: none did).
     """
-    left = (~keep[seg]).nonzero()[0]
-    m = left.size
-    if m < p.min_points:
+    left, pts, brk = chain_points(x, y, r, idx, seg, keep, dphi / math.sin(p.break_lambda), 3.0 * p.break_sigma,
+                                  p.link_lag, p.min_points)
+    if left.size < p.min_points or pts.size == 0:
         return seg, n_seg, None
-    sx = xy[left]
-    order, brk = link_chains(sx[:, 0].copy(), sx[:, 1].copy(), r[left], idx[left],
-                             dphi / math.sin(p.break_lambda), 3.0 * p.break_sigma, p.link_lag, p.min_points)
-    if order.size == 0:
-        return seg, n_seg, None
-    px, pr = sx[order], r[left[order]]
-    is2 = _merge(px, _split(px, pr, brk, p), brk, p)
-    seg = seg.copy()
-    seg[left[order]] = n_seg + np.cumsum(is2) - 1
-    return seg, n_seg + int(is2.sum()), left
+    px, py, pr = x.take(pts), y.take(pts), r.take(pts)
+    seg, n = relabel(seg, pts, _merge(px, py, _split(px, py, pr, brk, p), brk, p), n_seg)
+    return seg, n, left
 
 
 def hough(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = AngleParams()) -> IncidenceResult:

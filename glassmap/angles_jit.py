@@ -19,12 +19,12 @@ _jit = numba.njit(cache=True, nogil=True)
 
 
 @_jit
-def split_pieces(x: np.ndarray, y: np.ndarray, tol: np.ndarray, is_start: np.ndarray, min_len: int,
-                 max_levels: int) -> np.ndarray:
+def split_pieces(x: np.ndarray, y: np.ndarray, r: np.ndarray, is_start: np.ndarray, tol: float, tol_rel: float,
+                 min_len: int, max_levels: int) -> np.ndarray:
     """Iterative end-point fit: returns a copy of ``is_start`` with every split added.
 
     A piece (first to last point) is split at its first farthest point from the chord when that point's
-    distance exceeds its tolerance ``tol`` (m) and the piece spans at least ``min_len`` points after its
+    distance exceeds its tolerance ``tol + tol_rel * r`` (m; r: the point's range) and the piece spans at least ``min_len`` points after its
     first; the two halves are fitted again, down to ``max_levels`` levels below the runs of ``is_start``.
     A chord shorter than 1e-9 m (a closed piece) measures distances to the first point."""
     n = x.shape[0]
@@ -54,14 +54,14 @@ def split_pieces(x: np.ndarray, y: np.ndarray, tol: np.ndarray, is_start: np.nda
         k = -1
         if length <= 1e-9:
             for i in range(s, e + 1):
-                ex = math.hypot(x[i] - fx, y[i] - fy) - tol[i]
+                ex = math.hypot(x[i] - fx, y[i] - fy) - (tol + tol_rel * r[i])
                 if ex > best:
                     best, k = ex, i
         else:
             a, b = -dy / length, dx / length
             c = -(a * fx + b * fy)
             for i in range(s, e + 1):
-                ex = abs(a * x[i] + b * y[i] + c) - tol[i]
+                ex = abs(a * x[i] + b * y[i] + c) - (tol + tol_rel * r[i])
                 if ex > best:
                     best, k = ex, i
         if best > 0.0:
@@ -90,9 +90,12 @@ def moments(x: np.ndarray, y: np.ndarray, seg: np.ndarray, n_seg: int) -> np.nda
 
 
 @_jit
-def extents(x: np.ndarray, y: np.ndarray, seg: np.ndarray, cen: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Length (m) of each segment along its line (direction (n_y, -n_x)): largest minus smallest
-    coordinate of its points; -inf for a segment without points."""
+def segment_keep(x: np.ndarray, y: np.ndarray, seg: np.ndarray, mom: np.ndarray, cen: np.ndarray,
+                 normals: np.ndarray, rms: np.ndarray, min_points: int, min_length: float,
+                 max_rms: float) -> np.ndarray:
+    """Whether each segment (of its moments ``mom``, TLS centroid, normal and rms) is good enough to give
+    angles: at least ``min_points`` points, ``min_length`` (m) between its extreme points along its line
+    (direction (n_y, -n_x)) and an rms distance within ``max_rms`` (m)."""
     k = cen.shape[0]
     lo = np.full(k, np.inf)
     hi = np.full(k, -np.inf)
@@ -101,26 +104,151 @@ def extents(x: np.ndarray, y: np.ndarray, seg: np.ndarray, cen: np.ndarray, norm
         t = (x[i] - cen[s, 0]) * normals[s, 1] - (y[i] - cen[s, 1]) * normals[s, 0]
         lo[s] = min(lo[s], t)
         hi[s] = max(hi[s], t)
-    return hi - lo
+    keep = np.empty(k, np.bool_)
+    for s in range(k):
+        keep[s] = mom[s, 0] >= min_points and hi[s] - lo[s] >= min_length and rms[s] <= max_rms
+    return keep
 
 
 @_jit
-def link_chains(x: np.ndarray, y: np.ndarray, r: np.ndarray, beam: np.ndarray, k: float, sigma3: float,
-                max_lag: int, min_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """The second pass's chains over m leftover points (scan order): each point links to the nearest
-    earlier point up to ``max_lag`` points back that lies within ``min(r_i, r_j) * (beam_i - beam_j) * k +
-    sigma3`` (m); a chain is a tree of links. Returns the points of chains of at least ``min_points`` points,
-    chain by chain (chains by their first point, points in scan order), and a bool start mask of the chains
-    over them."""
-    m = x.shape[0]
+def breaks(idx: np.ndarray, r: np.ndarray, x: np.ndarray, y: np.ndarray, dphi: float, sin_lambda: float,
+           sigma3: float, max_gap: int) -> np.ndarray:
+    """bool (m,): point i starts a new run (adaptive breakpoint detector): it is more than ``max_gap``
+    invalid beams after the previous point, or farther from it than ``min(r) * gap * dphi / sin_lambda +
+    sigma3`` (m; gap in beams)."""
+    m = idx.shape[0]
+    brk = np.ones(m, np.bool_)
+    for i in range(1, m):
+        gap = idx[i] - idx[i - 1]
+        d = math.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
+        thr = min(r[i - 1], r[i]) * (float(gap) * dphi) / sin_lambda + sigma3
+        brk[i] = gap > max_gap + 1 or d > thr
+    return brk
+
+
+@_jit
+def piece_moments(x: np.ndarray, y: np.ndarray, is_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pieces of ``is_start`` (k of them): their first points (k,) and moments (2k - 1, 6): the k
+    pieces', then the sums of adjacent pieces' (pieces 0 + 1, 1 + 2, ...)."""
+    k = 0
+    for i in range(is_start.shape[0]):
+        if is_start[i]:
+            k += 1
+    starts = np.empty(k, np.int64)
+    seg = np.empty(x.shape[0], np.int64)
+    s = -1
+    for i in range(x.shape[0]):
+        if is_start[i]:
+            s += 1
+            starts[s] = i
+        seg[i] = s
+    mom = np.zeros((max(2 * k - 1, 0), 6))
+    mom[:k] = moments(x, y, seg, k)
+    for j in range(k - 1):
+        for c in range(6):
+            mom[k + j, c] = mom[j + 1, c] + mom[j, c]
+    return starts, mom
+
+
+@_jit
+def merge_pieces(is_start: np.ndarray, starts: np.ndarray, run_start: np.ndarray, normals: np.ndarray,
+                 rms: np.ndarray, cos_min: float, max_rms: float) -> np.ndarray:
+    """``is_start`` without the starts of pieces merged into the previous one: same run, unit normals
+    (rows of :func:`piece_moments`' fits) with |cos| above ``cos_min`` and a joint rms within ``max_rms``."""
+    k = starts.shape[0]
+    out = is_start.copy()
+    for i in range(k - 1):
+        c = abs(normals[i + 1, 0] * normals[i, 0] + normals[i + 1, 1] * normals[i, 1])
+        if not run_start[starts[i + 1]] and c > cos_min and rms[k + i] <= max_rms:
+            out[starts[i + 1]] = False
+    return out
+
+
+@_jit
+def labels(is_start: np.ndarray) -> tuple[np.ndarray, int]:
+    """Segment label of every point (the number of starts up to it, minus one) and the number of segments."""
+    seg = np.empty(is_start.shape[0], np.int64)
+    s = -1
+    for i in range(is_start.shape[0]):
+        if is_start[i]:
+            s += 1
+        seg[i] = s
+    return seg, s + 1
+
+
+@_jit
+def adopt_fits(mom: np.ndarray, cen: np.ndarray, normals: np.ndarray, keep: np.ndarray, mom1: np.ndarray,
+               cen1: np.ndarray, normals1: np.ndarray, keep1: np.ndarray) -> None:
+    """In place: the segments kept by the first pass (``keep1``, the first ``keep1.size`` ids) take their
+    first-pass fits and stay kept."""
+    for s in range(keep1.shape[0]):
+        if keep1[s]:
+            mom[s] = mom1[s]
+            cen[s] = cen1[s]
+            normals[s] = normals1[s]
+            keep[s] = True
+
+
+@_jit
+def point_cosines(ux: np.ndarray, uy: np.ndarray, idx: np.ndarray, seg: np.ndarray, keep: np.ndarray,
+                  normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the points on kept segments: their beam (``idx``), |cos| of the angle between the beam
+    direction (ux, uy) and the segment normal, and the segment's id among the kept ones."""
+    new_id = np.empty(keep.shape[0], np.int64)
+    c = -1
+    for s in range(keep.shape[0]):
+        if keep[s]:
+            c += 1
+        new_id[s] = c
+    m = 0
+    for i in range(seg.shape[0]):
+        if keep[seg[i]]:
+            m += 1
+    at = np.empty(m, np.int64)
+    cosang = np.empty(m)
+    sid = np.empty(m, np.int64)
+    m = 0
+    for i in range(seg.shape[0]):
+        s = seg[i]
+        if keep[s]:
+            at[m] = idx[i]
+            cosang[m] = abs(ux[i] * normals[s, 0] + uy[i] * normals[s, 1])
+            sid[m] = new_id[s]
+            m += 1
+    return at, cosang, sid
+
+
+@_jit
+def chain_points(x: np.ndarray, y: np.ndarray, r: np.ndarray, beam: np.ndarray, seg: np.ndarray,
+                 keep: np.ndarray, k: float, sigma3: float, max_lag: int,
+                 min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The second pass's chains over the leftover points (those on segments not in ``keep``, in scan
+    order): each links to the nearest earlier leftover point up to ``max_lag`` leftover points back that
+    lies within ``min(r_i, r_j) * (beam_i - beam_j) * k + sigma3`` (m); a chain is a tree of links.
+    Returns (left: the leftover points, pts: the points of chains of at least ``min_points`` points, chain
+    by chain (chains by their first point, points in scan order), brk: bool start mask of the chains over
+    pts)."""
+    n = x.shape[0]
+    m = 0
+    for i in range(n):
+        if not keep[seg[i]]:
+            m += 1
+    left = np.empty(m, np.int64)
+    m = 0
+    for i in range(n):
+        if not keep[seg[i]]:
+            left[m] = i
+            m += 1
     root = np.arange(m)
     for i in range(1, m):
+        p = left[i]
         for lag in range(1, min(max_lag, i) + 1):
             j = i - lag
-            thr = min(r[i], r[j]) * float(beam[i] - beam[j])
+            q = left[j]
+            thr = min(r[p], r[q]) * float(beam[p] - beam[q])
             thr *= k
             thr += sigma3
-            if math.hypot(x[i] - x[j], y[i] - y[j]) <= thr:
+            if math.hypot(x[p] - x[q], y[p] - y[q]) <= thr:
                 root[i] = root[j]
                 break
     size = np.zeros(m, np.int64)
@@ -132,7 +260,7 @@ def link_chains(x: np.ndarray, y: np.ndarray, r: np.ndarray, beam: np.ndarray, k
         if size[i] >= min_points:
             offset[i] = total
             total += size[i]
-    order = np.empty(total, np.int64)
+    pts = np.empty(total, np.int64)
     brk = np.zeros(total, np.bool_)
     fill = offset.copy()
     for i in range(m):
@@ -140,9 +268,22 @@ def link_chains(x: np.ndarray, y: np.ndarray, r: np.ndarray, beam: np.ndarray, k
         if size[q] >= min_points:
             if fill[q] == offset[q]:
                 brk[fill[q]] = True
-            order[fill[q]] = i
+            pts[fill[q]] = left[i]
             fill[q] += 1
-    return order, brk
+    return left, pts, brk
+
+
+@_jit
+def relabel(seg: np.ndarray, pts: np.ndarray, is_start: np.ndarray, first: int) -> tuple[np.ndarray, int]:
+    """A copy of ``seg`` with the points ``pts`` labelled by the pieces of ``is_start`` (over pts), the
+    first piece ``first``; and the number of segments then."""
+    out = seg.copy()
+    s = first - 1
+    for i in range(pts.shape[0]):
+        if is_start[i]:
+            s += 1
+        out[pts[i]] = s
+    return out, s + 1
 
 
 @_jit
