@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from .registration_jit import nearest_cells, sum_runs, window_observations
+from .registration_jit import decay_exponents, decayed, nearest_cells, sum_runs, window_observations
 
 Method = Literal["direct", "robust"]
 DecayRef = Literal["cell", "endpoint"]
@@ -129,9 +129,13 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
     if decay_ref == "cell":
         # the window's cells lie at only a few distinct distances (3 for k = 3): eq. 6 and the logit are
         # evaluated once per beam and distance, then spread over the window
+        # (compiled, with numpy's exp and log: the same numbers as decayed_probability and logit)
         dist, spread = _window_distances(k, float(resolution))
-        pc = np.clip(decayed_probability(p[:, None], dist[None, :], sig), p_clip, 1.0 - p_clip)
-        lo = logit(pc)
+        sg = np.ascontiguousarray(sig[:, 0])
+        ex = decay_exponents(dist, sg)
+        pd = decayed(p, np.exp(ex, out=ex), dist, sg, p_clip, 1.0 - p_clip)
+        lo = np.log(pd)
+        lo -= np.log1p(np.negative(pd, out=pd), out=pd)
     elif decay_ref == "endpoint":
         centres = origin + (centre_cells[:, None, :] + offs[None, :, :] + 0.5) * resolution
         d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]

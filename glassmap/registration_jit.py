@@ -13,7 +13,7 @@ import math
 import numba
 import numpy as np
 
-_jit = numba.njit(cache=True, nogil=True)
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0 is inf or NaN, as in numpy
 
 
 @_jit
@@ -98,3 +98,30 @@ def sum_runs(cells: np.ndarray, order: np.ndarray, values: np.ndarray) -> tuple[
         total[u] += values[order[i]]
         count[u] += 1
     return uniq[:u + 1], total[:u + 1], count[:u + 1]
+
+
+@_jit
+def decay_exponents(dist: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The exponents -dist^2 / (2 sigma^2) (n, d) of eq. 6 for each beam (sigma (n,) m) and window
+    distance (dist (d,) m); sigma = 0 gives -inf or NaN (see :func:`decayed`)."""
+    n, d = sigma.shape[0], dist.shape[0]
+    ex = np.empty((n, d))
+    for j in range(n):
+        s2 = 2.0 * sigma[j] * sigma[j]
+        for i in range(d):
+            ex[j, i] = -(dist[i] * dist[i]) / s2
+    return ex
+
+
+@_jit
+def decayed(p: np.ndarray, w: np.ndarray, dist: np.ndarray, sigma: np.ndarray, p_clip: float,
+            p_max: float) -> np.ndarray:
+    """Eq. 6 from the weights ``w = exp(exponent)`` (n, d): (p - 0.5) w + 0.5 clipped to [p_clip, p_max];
+    sigma = 0 weighs 1 at distance 0 and 0 elsewhere."""
+    n, d = w.shape
+    out = np.empty((n, d))
+    for j in range(n):
+        for i in range(d):
+            wi = w[j, i] if sigma[j] > 0 else (1.0 if dist[i] == 0 else 0.0)
+            out[j, i] = min(max((p[j] - 0.5) * wi + 0.5, p_clip), p_max)
+    return out

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def mirror_pairs(k0: np.ndarray, k1: np.ndarray, k0b: np.ndarray, k1b: np.ndarray, front: np.ndarray,
                  bmin: np.ndarray, bmax: np.ndarray, beam_mirror: np.ndarray,
                  mirrors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
