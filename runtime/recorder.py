@@ -101,7 +101,10 @@ class McapRecorder:
         self.topics = dict(TOPICS if topics is None else topics)
         self.metadata = {name: {k: str(v) for k, v in values.items()} for name, values in (metadata or {}).items()}
         self.stats = RecorderStats()
-        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        # SimpleQueue: a put is a C call with no condition variable to notify (the event loop queues ~7
+        # messages per scan); write() keeps the bound (queue_size, <= 0: none) from its size
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue_size = queue_size
         self._latched: dict[str, tuple] = {}
         self._error: BaseException | None = None
         self._closed = False
@@ -145,12 +148,11 @@ class McapRecorder:
         if self._closed or self._error is not None:
             self.stats.dropped[topic] += 1
             return False
-        try:
-            self._queue.put_nowait((topic, msg, int(log_ns), int(publish_ns if publish_ns is not None else log_ns)))
-            return True
-        except queue.Full:
+        if 0 < self._queue_size <= self._queue.qsize():
             self.stats.dropped[topic] += 1
             return False
+        self._queue.put((topic, msg, int(log_ns), int(publish_ns if publish_ns is not None else log_ns)))
+        return True
 
     @property
     def backlog(self) -> int:
