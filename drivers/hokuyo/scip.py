@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.hokuyo.scip_jit import decode_multi
 from drivers.hokuyo.errors import (
     BadValue,
     ChecksumError,
@@ -250,6 +251,10 @@ def decode_scan_data(command: str, data: bytes | np.ndarray) -> tuple[np.ndarray
     rec = width * (2 if with_intensity else 1)
     a = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data
     if command[0] in "NH":
+        ok, multi, mint = decode_multi(a, width, 2 if with_intensity else 1, MAX_ECHOES)
+        if ok:  # well formed (the compiled fast path); else the code below says what is wrong
+            return multi[:, 0].copy(), (mint[:, 0].copy() if with_intensity else None), multi, \
+                (mint if with_intensity else None)
         amp = a == 0x26
         chars = a[~amp]
         if chars.size % rec:

@@ -1,0 +1,64 @@
+"""Compiled decoding of SCIP multi-echo scan data (ND, NE, HD, HE), numba ``njit``: the fast path of
+:func:`drivers.hokuyo.scip.decode_scan_data`.
+
+It decodes well-formed data only and says so; on anything else (a stray ``&``, a character outside the
+6-bit alphabet, too many echoes, a partial echo) the caller decodes with the numpy code, which raises the
+precise error. For well-formed data the values are the numpy code's. Compiled code is cached on disk.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+AMP = 0x26  # '&': the next echo belongs to the same step
+
+
+@numba.njit(cache=True, nogil=True)
+def decode_multi(a: np.ndarray, width: int, nval: int,
+                 max_echoes: int) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Multi-echo data ``a`` (uint8, lines joined, checksums removed) of ``nval`` values of ``width``
+    characters per echo. Returns (ok, values (steps, max_echoes) int32, intensities (steps, max_echoes)
+    int32; -1 where a step has fewer echoes; intensities all -1 when nval is 1); ok is False (and the
+    arrays empty) unless the data are well formed."""
+    rec = width * nval
+    bad = np.full((0, max_echoes), -1, np.int32)
+    n_amp = 0
+    pos = 0  # position of the next data character inside its echo
+    for i in range(a.size):
+        if a[i] == AMP:  # must sit between two echoes, before an echo
+            if i == 0 or pos != 0 or i + 1 >= a.size or a[i + 1] == AMP:
+                return False, bad, bad
+            n_amp += 1
+        else:
+            if a[i] - 0x30 > 0x3F or a[i] < 0x30:
+                return False, bad, bad
+            pos = (pos + 1) % rec
+    nchars = a.size - n_amp
+    if pos != 0 or nchars == 0:
+        return False, bad, bad
+    steps = nchars // rec - n_amp
+    val = np.full((steps, max_echoes), -1, np.int32)
+    inten = np.full((steps, max_echoes), -1, np.int32)
+    step = -1
+    echo = 0
+    i = 0
+    while i < a.size:
+        if a[i] == AMP:
+            echo += 1
+            if echo >= max_echoes:
+                return False, bad, bad
+            i += 1
+        else:
+            step += 1
+            echo = 0
+        for v in range(nval):
+            x = 0
+            for c in range(width):
+                x = (x << 6) | (np.int64(a[i]) - 0x30)
+                i += 1
+            if v == 0:
+                val[step, echo] = x
+            else:
+                inten[step, echo] = x
+    return True, val, inten
