@@ -107,13 +107,24 @@ def decode_timestamp(chars: bytes) -> int:
 
 def data_lines(payload: bytes) -> bytes:
     """Cut ``payload`` into SCIP data lines: 64 chars + checksum char + LF each, last line shorter."""
-    out = bytearray()
-    for k in range(0, len(payload), LINE_PAYLOAD):
-        chunk = payload[k:k + LINE_PAYLOAD]
-        out += chunk
-        out.append(checksum(chunk))
-        out.append(0x0A)
-    return bytes(out)
+    a = np.frombuffer(payload, np.uint8)
+    n = a.size
+    if n == 0:
+        return b""
+    full, rest = divmod(n, LINE_PAYLOAD)
+    lines = -(-n // LINE_PAYLOAD)
+    out = np.empty(n + 2 * lines, np.uint8)
+    body = out[:full * (LINE_PAYLOAD + 2)].reshape(full, LINE_PAYLOAD + 2)
+    body[:, :LINE_PAYLOAD] = a[:full * LINE_PAYLOAD].reshape(full, LINE_PAYLOAD)
+    # (sum & 0x3F) + 0x30: the sum mod 256 has the same low 6 bits
+    body[:, LINE_PAYLOAD] = (body[:, :LINE_PAYLOAD].sum(axis=1, dtype=np.uint8) & 0x3F) + 0x30
+    body[:, LINE_PAYLOAD + 1] = 0x0A
+    if rest:
+        tail = a[full * LINE_PAYLOAD:]
+        out[-rest - 2:-2] = tail
+        out[-2] = (int(tail.sum(dtype=np.uint8)) & 0x3F) + 0x30
+        out[-1] = 0x0A
+    return out.tobytes()
 
 
 def status_line(code: str) -> bytes:
