@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from drivers.hokuyo.errors import (
     AbnormalState,
+    BadValue,
     ChecksumError,
     CommandRejected,
     Denied,
@@ -25,6 +26,7 @@ from drivers.hokuyo.scip import (
     TimeReply,
     checksum,
     data_lines,
+    decode_scan_data,
     decode_values,
     distances_to_metres,
     encode_command,
@@ -165,6 +167,25 @@ def test_ampersand_as_last_character_of_a_line():
     assert first_data[63:64] == b"&"
     (r,) = feed_all(encode_reply(b"ND0000002901000", "99", payload))
     assert np.array_equal(r.multi, m)
+
+
+@pytest.mark.parametrize("data, why", [
+    (b"&000000", "'&' not followed by an echo"),  # before the first echo
+    (b"000000&&000000", "'&' not followed by an echo"),
+    (b"000&000000000", "'&' not followed by an echo"),  # inside an echo
+    (b"000000&", "'&' not followed by an echo"),
+    (b"000000&000000&000000&000000", "more than 3 echoes"),
+    (b"000000&00000", "not whole echoes"),
+    (b"000\x7f00", "outside the SCIP 6-bit alphabet"),
+    (b"000/00", "outside the SCIP 6-bit alphabet"),
+])
+def test_malformed_multi_echo_data_is_refused_with_the_reason(data, why):
+    # well-formed data take a compiled fast path; anything else must still say what is wrong
+    with pytest.raises(BadValue, match=why):
+        decode_scan_data("NE", data)
+    good = encode_values(np.array([1000, 50]), 3) + b"&" + encode_values(np.array([2000, 60, 3000, 70]), 3)
+    _, _, multi, mint = decode_scan_data("NE", good)
+    assert multi.tolist() == [[1000, 2000, -1], [3000, -1, -1]] and mint.tolist() == [[50, 60, -1], [70, -1, -1]]
 
 
 def test_error_codes_map_to_nan_and_inf():
