@@ -90,8 +90,13 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     if stages:
         from runtime.stageprof import stage_profile
 
-        t = stage_profile(str(recording))
-        lines.append(f"CPU time per stage, replay of the messages ({t.scans} scans, {beside}; runtime/stageprof.py):")
+        from runtime.readers import ReplayInputError
+
+        try:  # the raw bytes (the target path) when recorded
+            source, t = "raw bytes", stage_profile(str(recording), "raw")
+        except ReplayInputError:
+            source, t = "messages", stage_profile(str(recording))
+        lines.append(f"CPU time per stage, replay of the {source} ({t.scans} scans, {beside}; runtime/stageprof.py):")
         lines.append(t.table())
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024

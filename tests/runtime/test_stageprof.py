@@ -14,5 +14,6 @@ def test_stage_profile_times_every_scan_and_restores_the_functions(tmp_path):
     assert t.calls["incidence angles (split-merge)"] == 12  # the replay's warm-up is not counted
     assert 0 < t.cpu[glass] <= t.cpu[whole] <= t.process_cpu
     table = t.table().splitlines()
-    assert len(table) == 2 + len(STAGES) + 1
+    assert len(table) == 2 + len(STAGES) + 2  # + the process's CPU per scan, and that as scans/s on one core
+    assert table[-1].endswith(f"| {t.scans / t.process_cpu:.0f} | |")
     assert all(label in t.table() for _, label, _, _ in STAGES)
