@@ -138,25 +138,25 @@ class GlassMapper:
         rmax = scan.geometry.range_max
         with np.errstate(invalid="ignore"):
             ranged = np.isfinite(r) & (r >= scan.geometry.range_min) & (r <= rmax)
-        out.n_ranged = int(ranged.sum())
-        out.n_bad = int(np.isnan(r).sum())
+        out.n_ranged = int(np.count_nonzero(ranged))
+        out.n_bad = int(np.count_nonzero(np.isnan(r)))
         if out.n_ranged == 0:
             return out, np.zeros(n, dtype=bool)
         res = incidence_angles(scan.angles, np.where(ranged, r, np.nan), self.config.angle_method,
                                self.config.angle_params)
         out.incidence = res.incidence
         has_angle = np.isfinite(res.incidence)
-        out.n_angle = int(has_angle.sum())
+        out.n_angle = int(np.count_nonzero(has_angle))
         if scan.intensities is None:
             out.no_intensities = True
             return out, np.zeros(n, dtype=bool)
         inten = scan.intensities
         finite_i = np.isfinite(inten)
-        out.n_bad += int((~finite_i & ~np.isnan(r)).sum())
+        out.n_bad += int(np.count_nonzero(~finite_i & ~np.isnan(r)))
         use = has_angle & finite_i
-        if use.any():
+        out.n_classified = int(np.count_nonzero(use))
+        if out.n_classified:
             out.p_glass[use] = self.classifier_for(scan).predict_scan(scan, res, use)
-        out.n_classified = int(use.sum())
         return out, use
 
     def classifier_for(self, scan: Scan):
@@ -177,7 +177,8 @@ class GlassMapper:
                  sigma: np.ndarray) -> int:
         """Registration + Bayesian update of the classified beams ``use`` against the current occupancy grid.
         ``sigma`` (n,) metres per beam. Returns the number of beams registered."""
-        if not use.any():
+        n_use = int(np.count_nonzero(use))
+        if not n_use:
             return 0
         cfg = self.config
         ang = laser_pose[2] + scan.angles[use]
@@ -195,7 +196,7 @@ class GlassMapper:
                                         p_clip=cfg.glass.p_clip)
         flat, delta = aggregate(obs, cfg.aggregation)
         self.glass.update(flat, delta)
-        return int(use.sum())
+        return n_use
 
     def protect_mask(self) -> np.ndarray | None:
         """(H, W) bool cells that free-space updates must not clear (``MapperConfig.protect``), or None."""
@@ -217,7 +218,8 @@ class GlassMapper:
         ``<layer>_hits`` layer (``protect="hits"``). Returns the number of such beams."""
         sel = use.copy()
         sel[use] = beams.p_glass[use] > self.config.glass_hit_threshold
-        if not sel.any():
+        n_sel = int(np.count_nonzero(sel))
+        if not n_sel:
             return 0
         ang = laser_pose[2] + scan.angles[sel]
         rr = scan.ranges[sel]
@@ -231,7 +233,7 @@ class GlassMapper:
             lo[flat] = np.maximum(lo[flat], np.float32(self.occupancy.params.l_occ))
         if self.config.protect == "hits":
             self.grid[self.hits_layer].reshape(-1)[flat] = True
-        return int(sel.sum())
+        return n_sel
 
     def warm_up(self, scan: Scan) -> None:
         """Run the per-scan path once on ``scan`` at the map origin on a scratch grid, leaving this mapper's
@@ -272,7 +274,7 @@ class GlassMapper:
             return BeamGlass(np.zeros(0), np.zeros(0))
         beams, use = self.classify(scan)
         bad_sigma = ~np.isfinite(sig)
-        beams.n_bad += int((bad_sigma & use).sum())
+        beams.n_bad += int(np.count_nonzero(bad_sigma & use))
         use &= ~bad_sigma
         if update_occupancy:
             self.integrate(scan, occ_pose)
