@@ -101,6 +101,9 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
         truth.add(t, pose)
         return compose(pose, np.asarray(robot.params.laser_offset, np.float64))
 
+    from glassmap.sim.cast_jit import warm_up
+
+    warm_up()  # the ray casting's compiled kernel, before the host connects (its laser watchdog is 0.5 s)
     source = sim_scan_source(world, laser_pose, seed + 1, on_scan=seen.add)
     hokuyo = HokuyoEmulator(source, time_scale=speed)
     truth.clock = hokuyo.clock_ms

@@ -70,14 +70,20 @@ class MappingProcessor:
 
     def warm_up(self) -> None:
         """Run the glass path once on a synthetic scan (a room of 4 x 6 m) on a scratch grid, without
-        touching the maps or the pose: the first network call and the first call of each compiled kernel
-        cost tens of milliseconds, which would otherwise delay the first real scans."""
+        touching the maps or the pose, and decode a multi-echo laser message: the first network call and
+        the first call of each compiled kernel cost tens of milliseconds (seconds the first time on a
+        machine, when they compile), which would otherwise delay the first real scans."""
+        from drivers.hokuyo.scip import decode_scan_data, encode_values
         from glassmap.types import LaserGeometry
 
+        # the laser decoder's compiled multi-echo path, which the event loop would load at the first scan
+        decode_scan_data("NE", np.frombuffer(encode_values(np.arange(4), 3), np.uint8).copy())
         geo = LaserGeometry()
         a = geo.angles
         with np.errstate(divide="ignore"):
             r = np.minimum(np.abs(2.0 / np.sin(a)), np.abs(3.0 / np.cos(a)))
+        pane = (a > 0.3) & (a < 0.9) & (np.arange(a.size) % 2 == 1)
+        r[pane] *= 0.6  # a pane seen on every other beam: the line extractor's second pass runs too
         echoes = np.full((a.shape[0], 1), np.nan) if self.wants_echoes else None  # as the laser will send
         self.mapper.warm_up(Scan(stamp=0.0, ranges=r, intensities=np.full(a.shape, 3000.0), geometry=geo,
                                   echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))

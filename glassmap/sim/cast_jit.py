@@ -42,3 +42,11 @@ def mirror_pairs(k0: np.ndarray, k1: np.ndarray, k0b: np.ndarray, k1b: np.ndarra
                                 bb[total], jj[total], kk[total] = b, j, k
                             total += 1
     return bb, jj, kk
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) the kernel now, with the argument types the ray
+    casting passes, rather than at the first scan that sees a mirror."""
+    f = np.zeros((1, 1))
+    i = np.zeros(1, np.int64)
+    mirror_pairs(f, f, f, f, np.zeros((1, 1), np.bool_), i, i, i, i)
