@@ -183,12 +183,14 @@ class GlassMapper:
         cfg = self.config
         ang = laser_pose[2] + scan.angles[use]
         rr = scan.ranges[use]
-        ends = np.empty((rr.shape[0], 2))
-        ends[:, 0] = laser_pose[0] + rr * np.cos(ang)
-        ends[:, 1] = laser_pose[1] + rr * np.sin(ang)
+        ex = laser_pose[0] + rr * np.cos(ang)
+        ey = laser_pose[1] + rr * np.sin(ang)
         g = self.grid
         margin = (cfg.window // 2 + cfg.search_radius + 2) * g.resolution
-        g.ensure_contains(ends.min(axis=0) - margin, ends.max(axis=0) + margin)
+        g.ensure_contains(*_box(ex, ey, margin))
+        ends = np.empty((rr.shape[0], 2))
+        ends[:, 0] = ex
+        ends[:, 1] = ey
         cells, _ = nearest_occupied_cells(ends, g.origin, g.resolution, self.occupancy.log_odds, self._occ_thr,
                                           cfg.search_radius)
         obs = registration_observations(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
@@ -223,9 +225,10 @@ class GlassMapper:
             return 0
         ang = laser_pose[2] + scan.angles[sel]
         rr = scan.ranges[sel]
-        xy = np.stack([laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)], axis=1)
+        x, y = laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)
+        xy = np.stack([x, y], axis=1)
         g = self.grid
-        g.ensure_contains(xy.min(axis=0) - 1.0, xy.max(axis=0) + 1.0)
+        g.ensure_contains(*_box(x, y, 1.0))
         cells = g.world_to_cell(xy)
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
         lo = self.occupancy.log_odds.reshape(-1)
@@ -309,6 +312,12 @@ class GlassMapper:
     def export(self, out_dir: str, stem: str = "glass_map", scale: int = 2, crop: bool = True) -> dict[str, str]:
         """Write the maps (see :func:`export_maps`). Returns the paths."""
         return export_maps(self.occupancy, self.glass, out_dir, stem, scale, crop)
+
+
+def _box(x: np.ndarray, y: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners (m) of the box around the points (x, y) grown by ``margin`` (m), by 1-D
+    reductions (an axis-0 reduction of an (n, 2) array costs ~15x more)."""
+    return (np.array([x.min() - margin, y.min() - margin]), np.array([x.max() + margin, y.max() + margin]))
 
 
 @dataclass
