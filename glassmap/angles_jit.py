@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import math
 
-import numba
+from .jit import njit
 import numpy as np
 
-_jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0 is inf or NaN, as in numpy
+_jit = njit(cache=True, nogil=True, error_model="numpy")  # x / 0 is inf or NaN, as in numpy
 
 
 @_jit

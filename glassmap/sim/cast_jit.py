@@ -6,11 +6,11 @@ the simulated scans are the same to the last bit. Compiled code is cached on dis
 
 from __future__ import annotations
 
-import numba
+from glassmap.jit import njit
 import numpy as np
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def mirror_pairs(k0: np.ndarray, k1: np.ndarray, k0b: np.ndarray, k1b: np.ndarray, front: np.ndarray,
                  bmin: np.ndarray, bmax: np.ndarray, beam_mirror: np.ndarray,
                  mirrors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
