@@ -25,7 +25,7 @@ from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
 from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
-from runtime.tuning import one_thread_per_process
+from runtime.tuning import one_malloc_arena, one_thread_per_process
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,7 @@ def _register_glass_label(glass_sub: argparse._SubParsersAction) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     one_thread_per_process()  # parallel jobs are processes; a BLAS team per small product only waits (runtime.tuning)
+    one_malloc_arena()  # before any thread starts: threads' own malloc arenas hold freed buffers (runtime.tuning)
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)

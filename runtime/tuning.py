@@ -14,10 +14,16 @@ garbage collector's way.
   allocates at that moment (often the processing thread in the middle of a scan). :func:`freeze_startup`
   moves everything alive after start-up into the permanent generation, so later collections only walk
   what the run itself creates.
+- glibc's malloc gives each thread that allocates its own arena (up to 8 per core) and keeps freed memory in
+  each; the runtime's threads (event loop, processing, likelihood field, recorder) each hold tens of MiB
+  of freed numpy buffers that way. :func:`one_malloc_arena` makes every thread share one arena (small
+  allocations still go through each thread's cache, and most of the runtime's allocation happens under
+  the interpreter lock anyway).
 """
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import os
 
@@ -45,3 +51,19 @@ def freeze_startup() -> None:
     """Collect once, then exempt every object alive now from later collections (``gc.freeze``)."""
     gc.collect()
     gc.freeze()
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter number
+
+
+def one_malloc_arena() -> bool:
+    """One glibc malloc arena for every thread started from now on, unless MALLOC_ARENA_MAX is set (an
+    explicit setting wins). Returns True if set; False without glibc (musl, macOS) or with the variable."""
+    if "MALLOC_ARENA_MAX" in os.environ:
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return mallopt(M_ARENA_MAX, 1) == 1

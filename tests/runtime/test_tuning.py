@@ -1,11 +1,14 @@
 """Process-wide settings of runtime.tuning, each checked in a fresh interpreter (they change the process)."""
 
 import json
+import platform
 import os
 import subprocess
 import sys
 
 import pytest
+
+from runtime.tuning import one_malloc_arena
 
 PROBE = """
 import gc, json, os
@@ -38,3 +41,40 @@ def test_one_blas_thread_for_the_process_and_its_children():
 def test_an_explicit_thread_count_wins():
     r = _probe(OPENBLAS_NUM_THREADS="2")
     assert r["env"] == "2" and 2 in r["blas"]
+
+
+_ARENAS = """
+import ctypes, os, sys, tempfile, threading
+from runtime.tuning import one_malloc_arena
+if sys.argv[1] == "one":
+    assert one_malloc_arena()
+keep = []
+def work():
+    keep.append([ctypes.create_string_buffer(200_000) for _ in range(5)])  # glibc malloc, not pymalloc
+ts = [threading.Thread(target=work) for _ in range(4)]
+[t.start() for t in ts]; [t.join() for t in ts]
+libc = ctypes.CDLL(None)
+libc.fopen.restype = ctypes.c_void_p
+path = os.path.join(tempfile.mkdtemp(), "info.xml")
+fp = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, ctypes.c_void_p(fp)); libc.fclose(ctypes.c_void_p(fp))
+print(open(path).read().count("<heap nr="))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc", reason="glibc only")
+def test_one_malloc_arena_makes_threads_share_one_arena():
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+
+    def heaps(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", _ARENAS, mode], capture_output=True, text=True, env=env,
+                             check=True)
+        return int(out.stdout)
+
+    assert heaps("one") == 1
+    assert heaps("default") > 1
+
+
+def test_an_explicit_malloc_arena_max_wins(monkeypatch):
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
+    assert one_malloc_arena() is False
