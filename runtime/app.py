@@ -35,7 +35,7 @@ from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder, RecorderError
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
-from runtime.tuning import freeze_startup
+from runtime.tuning import freeze_startup, thaw
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +221,7 @@ class Runtime:
                     proc = next(t for t in tasks if t.get_name() == "processing")
                     await self._finish_processing(proc)
         finally:
+            thaw()
             await self._close_devices()
             if self.stage is not None:
                 self.stage.shutdown()

@@ -29,7 +29,7 @@ from runtime.config import RuntimeConfig
 from runtime.readers import ReplayInputError, iter_messages, read_metadata
 from runtime.recorder import read_mcap
 from runtime.parallel import job_executor
-from runtime.tuning import freeze_startup
+from runtime.tuning import freeze_startup, thaw
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +231,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
             if limit is not None and res.scans >= limit:
                 break
     finally:
+        thaw()
         if bar is not None:
             bar.close()
     res.wall_time = time.perf_counter() - t0

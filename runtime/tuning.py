@@ -48,9 +48,22 @@ def one_thread_per_process() -> None:
 
 
 def freeze_startup() -> None:
-    """Collect once, then exempt every object alive now from later collections (``gc.freeze``)."""
+    """Collect once and give the freed memory back to the system (glibc ``malloc_trim``: what an earlier
+    run in this process left), then exempt every object alive now from later collections (``gc.freeze``);
+    undo with :func:`thaw` at the end of the run."""
     gc.collect()
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
     gc.freeze()
+
+
+def thaw() -> None:
+    """Make the objects frozen by :func:`freeze_startup` collectable again (``gc.unfreeze``): the run's
+    processor, grids and threads hold reference cycles, which stay in memory after the run while frozen
+    (several runs in one process, e.g. ``glassmap bench``, would each keep theirs)."""
+    gc.unfreeze()
 
 
 M_ARENA_MAX = -8  # glibc's mallopt parameter number

@@ -78,3 +78,24 @@ def test_one_malloc_arena_makes_threads_share_one_arena():
 def test_an_explicit_malloc_arena_max_wins(monkeypatch):
     monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
     assert one_malloc_arena() is False
+
+
+_THAW = """
+import gc, weakref
+from runtime.tuning import freeze_startup, thaw
+class Node: pass
+a = Node(); a.self = a  # a reference cycle, alive at the freeze, as a run's processor is
+ref = weakref.ref(a)
+freeze_startup()
+del a
+gc.collect()
+frozen_kept = ref() is not None
+thaw()
+gc.collect()
+print(frozen_kept, ref() is None, gc.get_freeze_count())
+"""
+
+
+def test_thaw_lets_the_collector_free_what_a_run_froze():
+    out = subprocess.run([sys.executable, "-c", _THAW], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "True", "0"]
