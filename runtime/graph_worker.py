@@ -96,6 +96,7 @@ class GraphWorker:
         self._closing = False
         self.busy_time = 0.0  # s (wall clock of the worker) spent in the back end and building corrected maps
         self.closures = 0
+        self.map_seconds = 0.0  # s the worker took to build the latest corrected maps
         self.error: GraphWorkerError | None = None
         self.in_process = in_process
         self._process = None
@@ -230,8 +231,9 @@ class GraphWorker:
                         log.info("loop closure: %d accepted in all (%d key scans)", closures, done)
                     self.closures = closures
             elif kind == "maps":
-                _, token, stamps, poses, closures, occ, glass = msg
+                _, token, stamps, poses, closures, occ, glass, seconds = msg
                 with self._lock:
+                    self.map_seconds = seconds
                     old = self._snapshot
                     self._snapshot = GraphSnapshot(stamps, poses, closures, occ, old.version + 1, glass)
                     if token is not None and token == self._finish_token:
@@ -252,7 +254,7 @@ class GraphWorker:
 # -- run in the worker process (or thread) ----------------------------------------------------------------
 def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> None:
     """The worker's loop: messages ("key", KeyScan), ("finish", token) or None (stop) from ``inbox``;
-    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, closures, grid, glass),
+    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, closures, grid, glass, s to build them),
     ("error", text), ("stopped",) to ``outbox``. ``parent_pid``: in a process, end when that process is gone."""
     if parent_pid is not None:
         _process_setup(parent_pid)
@@ -266,13 +268,14 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
         nonlocal dirty, last_rebuild
         dirty, last_rebuild = False, time.monotonic()
         poses = be.poses(refresh=refresh)
+        t = time.perf_counter()
         occ = glass = None
         if len(be):
             occ, gm = be.corrected_maps(settings.occupancy, settings.resolution, poses, settings.mapper)
             if gm is not None:
                 glass = gm.copy_maps()
                 occ = glass.occupancy
-        outbox.put(("maps", token, be.stamps(), poses, len(be.closures), occ, glass))
+        outbox.put(("maps", token, be.stamps(), poses, len(be.closures), occ, glass, time.perf_counter() - t))
 
     while True:
         msg = inbox.get()
