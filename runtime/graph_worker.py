@@ -30,7 +30,7 @@ import queue
 import threading
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -148,7 +148,7 @@ class GraphWorker:
             return
         with self._lock:
             self._submitted += 1
-        self._inbox.put(("key", key))
+        self._inbox.put(("key", compact(key)))
 
     def correction(self) -> np.ndarray:
         """(3,) the latest correction: compose(correction, front-end pose) = corrected pose."""
@@ -249,6 +249,14 @@ class GraphWorker:
         with self._lock:
             self.error = err
             self._lock.notify_all()
+
+
+def compact(key: KeyScan) -> KeyScan:
+    """The key scan without what the back end never reads: the raw scan keeps its ranges, geometry and
+    stamps (the corrected glass map's steps read only those), not its intensities and extra echoes."""
+    if key.scan is None:
+        return key
+    return replace(key, scan=replace(key.scan, intensities=None, echoes=None, echo_intensities=None))
 
 
 # -- run in the worker process (or thread) ----------------------------------------------------------------

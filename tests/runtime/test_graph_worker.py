@@ -158,3 +158,25 @@ def test_close_stops_the_worker_process():
         w.submit(k)
     w.close()
     assert not w._process.is_alive() and w._process.exitcode == 0
+
+
+def test_bench_takes_the_loop_closure_setting():
+    from runtime.cli import _config, build_parser, cmd_bench
+
+    args = build_parser().parse_args(["bench", "--duration", "5", "--mapping.loop_closure", "true"])
+    assert args.func is cmd_bench and _config(args).mapping.loop_closure
+    assert not _config(build_parser().parse_args(["bench"])).mapping.loop_closure
+
+
+def test_key_scans_travel_without_intensities_and_echoes():
+    from glassmap.types import Scan
+    from runtime.graph_worker import compact
+
+    k = _short_keys()[0]
+    n = k.ranges.shape[0]
+    scan = Scan(stamp=k.stamp, ranges=k.ranges, intensities=np.ones(n), echoes=np.full((n, 2), np.nan),
+                echo_intensities=np.zeros((n, 2)))
+    c = compact(replace(k, scan=scan, p_glass=np.full(n, 0.5)))
+    assert c.scan.intensities is None and c.scan.echoes is None and c.scan.echo_intensities is None
+    assert c.scan.ranges is scan.ranges and c.p_glass is not None and c.pose is k.pose
+    assert compact(k) is k  # no raw scan: nothing to strip
