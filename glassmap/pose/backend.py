@@ -28,7 +28,6 @@ import numpy as np
 from glassmap.grid import OccupancyGrid, OccupancyParams
 from glassmap.mapping import GlassMapper, MapperConfig
 from glassmap.pose.corrected import rebuild_maps
-from glassmap.pose.graph import PoseGraph
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, relative
@@ -82,7 +81,7 @@ class GraphBackEnd:
 
     def __init__(self, config: BackEndConfig = BackEndConfig(), sigma_hit: float = 0.03) -> None:
         self.config = config
-        self.graph: PoseGraph | None = None
+        self.graph = None  # the PoseGraph, from the first key scan (gtsam is imported then: not by the config)
         self.submaps = SubmapStore(config.submaps)
         self.closer = LoopCloser(config.closure, sigma_hit)
         self.keys: list[KeyScan] = []
@@ -95,6 +94,8 @@ class GraphBackEnd:
     def add(self, key: KeyScan) -> list[Closure]:
         """Add one key scan; returns the loop closures accepted with it."""
         if self.graph is None:
+            from glassmap.pose.graph import PoseGraph
+
             self.graph = PoseGraph(key.pose, np.diag([1e-6, 1e-6, 1e-6]))
             node = 0
             self.travel.append(0.0)
