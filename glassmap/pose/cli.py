@@ -253,7 +253,7 @@ def _experiment(args: argparse.Namespace) -> int:
                  f" cm (worst {100 * np.max([r['keys_ate'] for r in first]):.1f}), at the optimised poses mean "
                  f"{100 * np.mean([r['keys_lc_ate'] for r in first]):.1f} cm (worst "
                  f"{100 * np.max([r['keys_lc_ate'] for r in first]):.1f}); loop closures per trial "
-                 f"{[r['closures'] for r in first]}")
+                 f"{[r['closures'] for r in first]}, of them false {[r['false_closures'] for r in first]}")
     with open(stem + ".txt", "w") as f:
         f.write(text + "\n")
     print(text)

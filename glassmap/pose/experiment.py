@@ -24,7 +24,7 @@ import numpy as np
 
 from glassmap.pose.backend import BackEndConfig
 from glassmap.pose.estimator import EstimatorConfig
-from glassmap.pose.evaluate import metrics, run_estimator
+from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, metrics, run_estimator
 
 
 @dataclass(frozen=True)
@@ -135,6 +135,7 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
         front = np.array([k.pose for k in backend.keys])
         optimised = backend.poses()
         lc_cols = dict(key_scans=len(backend), closures=len(backend.closures),
+                       false_closures=_false_closures(backend.closures, truth),
                        keys_ate=_ate(front, truth), keys_lc_ate=_ate(optimised, truth))
         for kind, poses in (("keys", front), ("keys+lc", optimised)):
             for m in cfg.methods:
@@ -157,6 +158,20 @@ def _ate(poses: np.ndarray, truth: np.ndarray) -> float:
     if not len(poses):
         return float("nan")
     return float(np.sqrt(np.mean(np.sum((poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
+
+
+def _false_closures(closures, truth: np.ndarray) -> int:
+    """How many accepted closures are further than FALSE_CLOSURE_XY / _YAW from the truth (key-scan poses
+    ``truth`` (N, 3))."""
+    from glassmap.pose.motion import relative
+    from glassmap.types import wrap_angle
+
+    bad = 0
+    for c in closures:
+        tr = relative(truth[c.anchor], truth[c.node])
+        bad += int(np.hypot(tr[0] - c.pose[0], tr[1] - c.pose[1]) > FALSE_CLOSURE_XY
+                   or abs(float(wrap_angle(tr[2] - c.pose[2]))) > FALSE_CLOSURE_YAW)
+    return bad
 
 
 def _on_blueprint(mapper, bp) -> np.ndarray:

@@ -30,3 +30,17 @@ def test_trial_with_loop_closure_scores_maps_rebuilt_at_front_end_and_optimised_
     for r in rows:
         assert 0.0 <= r["error"] < 0.5 and r["n_cells"] > 100  # the corridor's glass walls scored
         assert r["key_scans"] > 10 and np.isfinite(r["keys_ate"]) and np.isfinite(r["keys_lc_ate"])
+        assert r["false_closures"] <= r["closures"]
+
+
+def test_false_closures_are_those_off_the_truth_by_more_than_5_cm_or_1_deg():
+    from glassmap.pose.backend import Closure
+    from glassmap.pose.experiment import _false_closures
+
+    truth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.pi / 2], [1.0, 1.0, np.pi]])
+    cov = np.eye(3)
+    right = Closure(0, 2, np.array([1.0, 1.0, np.pi]), cov, 0.0)
+    off_xy = Closure(0, 2, np.array([1.06, 1.0, np.pi]), cov, 0.0)
+    off_yaw = Closure(1, 2, np.array([1.0, 0.0, np.radians(91.5)]), cov, 0.0)
+    assert _false_closures([right], truth) == 0
+    assert _false_closures([right, off_xy, off_yaw], truth) == 2
