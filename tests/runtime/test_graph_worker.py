@@ -14,7 +14,7 @@ import pytest
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd
 from runtime import messages as M
 from runtime.config import MappingConfig
-from runtime.graph_worker import GraphWorker, GraphWorkerError
+from runtime.graph_worker import GraphWorker, GraphWorkerError, graph_messages
 from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder, read_mcap
 from runtime.sink import RecordingSink
@@ -180,3 +180,32 @@ def test_key_scans_travel_without_intensities_and_echoes():
     assert c.scan.intensities is None and c.scan.echoes is None and c.scan.echo_intensities is None
     assert c.scan.ranges is scan.ranges and c.p_glass is not None and c.pose is k.pose
     assert compact(k) is k  # no raw scan: nothing to strip
+
+
+def test_map_worker_builds_the_graph_messages_the_sink_would():
+    import asyncio
+
+    from runtime.map_worker import MapWorker
+
+    keys = _short_keys()[:12]
+    w = GraphWorker(BackEndConfig(), mapper=None)
+    try:
+        for k in keys:
+            w.submit(k)
+        snap = w.finish()
+    finally:
+        w.close()
+    tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
+
+    async def build():
+        mw = MapWorker()
+        try:
+            return await mw.graph_messages(snap, tb.ns(10.0), "map", tb)
+        finally:
+            mw.shutdown()
+
+    msgs = asyncio.run(build())
+    assert msgs == graph_messages(snap, tb.ns(10.0), "map", tb)  # the same bytes in the worker process
+    assert [t for t, _ in msgs] == ["/pose_graph/path", "/map/corrected"]  # no glass map without a mapper
+    path = M.typestore().deserialize_cdr(msgs[0][1], M.TOPICS["/pose_graph/path"])
+    assert len(path.poses) == len(keys) and path.poses[3].header.stamp.sec == tb.ns(keys[3].stamp) // 10**9
