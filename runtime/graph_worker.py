@@ -187,7 +187,8 @@ class GraphWorker:
             return self._final
 
     def close(self, timeout: float = 5.0) -> None:
-        """Stop the worker (what is queued is dropped) and wait for it to end; kills a process that does not."""
+        """Stop the worker once it has taken in what is queued, waiting up to ``timeout`` s; a process that
+        takes longer is killed (a thread is left to end on its own: it is a daemon)."""
         if self._closing:
             return
         self._closing = True
