@@ -332,7 +332,7 @@ class Runtime:
             maps = await self.stage.call(self.processor.copy_maps)
             if publish and self.sink is not None:
                 await self._publish_maps(maps)
-                self._publish_graph()
+                await self._publish_graph()
             if export:
                 await self._export_maps(maps)
 
@@ -354,15 +354,22 @@ class Runtime:
             return
         self.sink.maps(ns, occ, glass)
 
-    def _publish_graph(self) -> None:
-        """The pose graph's trajectory and corrected map, when a loop closure has produced a new one."""
+    async def _publish_graph(self) -> None:
+        """The pose graph's trajectory and corrected maps, when a loop closure has produced new ones (built
+        and serialised by the map worker)."""
         graph = getattr(self.processor, "graph", None)
         if graph is None:
             return
         snap = graph.snapshot()
         if snap.version > self._graph_version:
             self._graph_version = snap.version
-            self.sink.pose_graph(self.time_base.ns(time.monotonic()), snap)
+            ns = self.time_base.ns(time.monotonic())
+            try:
+                msgs = await self.map_worker.graph_messages(snap, ns, self.config.mapping.map_frame, self.time_base)
+            except BrokenProcessPool as exc:
+                log.error("pose graph messages not recorded: %s", exc)
+                return
+            self.sink.cdr(ns, msgs)
 
     async def _shutdown(self, tasks: list[asyncio.Task], stopper: asyncio.Task) -> None:
         """Cancel the driver (no further commands), stop the robot, then cancel the device and export tasks."""

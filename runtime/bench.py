@@ -7,7 +7,10 @@
 3. Peak resident memory (this process and the device process).
 ``stages``: also the CPU time of each stage of the processing (:mod:`runtime.stageprof`).
 ``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
-says how many.
+says how many. ``config``: the runtime's settings (``--config``, ``--mapping.*`` ... flags), e.g.
+``mapping.loop_closure``: the pose graph's worker process then runs beside the scans, and each replay also
+says how long the run waited after its last scan for the graph to catch up (counted in a second throughput
+figure).
 Targets on the development machine (issue 19): replay from raw bytes >= 400 scans/s on one core, live p99
 latency <= 20 ms idle and <= 25 ms with one busy process (``--load 1``), no scan dropped at 40 Hz, runtime
 peak memory <= 300 MiB (docs/performance.md).
@@ -50,28 +53,35 @@ def _stage_lines(stages: dict, prefix: str) -> list[str]:
 
 
 def run_bench(world: str = "office", duration: float = 20.0, recording: str | None = None,
-              out_dir: str = "out/bench", load: int = 0, stages: bool = False) -> str:
+              out_dir: str = "out/bench", load: int = 0, stages: bool = False, config=None) -> str:
+    """config: a :class:`runtime.config.RuntimeConfig` for the live run and, with ``recording``, its replays
+    (default: the defaults; a recording made here is replayed with its recorded settings)."""
     from runtime.load import BusyProcesses
 
     with BusyProcesses(load) as busy:
         lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it",
-                     stages)
+                     stages, config)
         if busy.running != load:
             lines.append(f"warning: only {busy.running} of the {load} busy processes were still running at the end")
     return "\n".join(lines)
 
 
-def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool) -> list[str]:
+def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool,
+         config=None) -> list[str]:
     from runtime.replay import replay_file
 
-    lines = [f"load: {beside} (glassmap bench --load N)"]
+    lc = config is not None and config.mapping.loop_closure
+    lines = [f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
+             "(--mapping.loop_closure)"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    replay_config = config
     if recording is None:
         from runtime.demo import DemoOptions, run_demo
 
+        replay_config = None  # the recording's own settings (start pose, loop closure, ...)
         res = asyncio.run(run_demo(DemoOptions(world=world, speed=1.0, duration=duration, out_dir=str(out),
-                                               progress=True)))
+                                               progress=True, config=config)))
         s = res.summary
         recording = res.recording
         lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time, {beside}): {s.stages.summary()}")
@@ -82,10 +92,19 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
     for source in ("messages", "raw"):
-        r = replay_file(recording, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
+        r = replay_file(recording, replay_config, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
                         as_recorded=False)
         lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = "
                      f"{r.scans_per_second:.0f} scans/s = {r.speedup:.1f}x real time")
+        if r.pose_graph is not None:
+            graph = r._processor.graph  # type: ignore[attr-defined]
+            total = r.wall_time + r.graph_wait
+            lines.append(f"  pose graph ({'a thread' if graph.in_process else 'its own process'}): "
+                         f"{len(r.pose_graph.stamps)} key scans, {r.pose_graph.closures} loop closures, busy "
+                         f"{graph.busy_time:.2f} s; waited {r.graph_wait:.2f} s after the last scan for it to catch "
+                         f"up and build the final corrected maps ({graph.map_seconds:.2f} s of it): "
+                         f"{r.data_time / total:.1f}x real time with the wait")
+            graph.close()
         lines += _stage_lines(r.stages, "")
     if stages:
         from runtime.stageprof import stage_profile

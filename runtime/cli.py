@@ -174,6 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--stages", action="store_true", help="also replay the recording once more with every stage of "
                    "the processing timed (CPU time of the thread: holds on a busy machine) and print the table")
     add_out(b, "out/bench")
+    add_config_flags(b)
     b.set_defaults(func=cmd_bench)
 
     e = sub.add_parser(
@@ -361,8 +362,13 @@ def _non_negative_int(text: str) -> int:
 def cmd_bench(args) -> int:
     from runtime.bench import run_bench
 
+    base = None
+    if args.recording is not None:  # its recorded settings, then the flags
+        from runtime.replay import recorded_config
+
+        base = recorded_config(args.recording)
     print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
-                    load=args.load, stages=args.stages))
+                    load=args.load, stages=args.stages, config=_config(args, base)))
     return 0
 
 

@@ -1,78 +1,154 @@
-"""The pose-graph worker: runs the SLAM back end in its own thread, off the 40 Hz scan path.
+"""The pose-graph worker: runs the SLAM back end in a helper process, off the 40 Hz scan path.
 
-The processing thread hands over each key scan (:meth:`GraphWorker.submit`, never blocks; the estimator's
-``last_key_scan`` with the raw scan and its p(glass)); the worker adds it to the
-:class:`~glassmap.pose.backend.GraphBackEnd` (iSAM2, submaps, loop-closure checks). After accepted loop
-closures (once it has caught up with the queue, at most every ``rebuild_period`` s) and when asked at the
-end of a run, it re-integrates the key scans at the optimised poses into a corrected occupancy grid and,
-when the key scans carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`).
-Readers take snapshots under a lock: the latest correction (front-end frame -> corrected frame), the
-optimised trajectory and the corrected maps. The queue is not bounded and every key scan is processed in
-order, so a replay of a recording reproduces the final graph exactly.
+iSAM2 updates, loop-closure checks (a submap field and a correlative match) and corrected-map rebuilds hold
+the GIL for up to ~1 s; in a thread of the runtime's process that time would be taken from the scans. The
+back end therefore runs in its own process (spawned, not forked: the runtime has threads; niced, so that
+on a busy machine the scans come first). The processing thread hands over each key scan
+(:meth:`GraphWorker.submit`, never blocks: a queue's feeder thread pickles it; the estimator's
+``last_key_scan`` with the raw scan and its p(glass)); the worker process adds it to the
+:class:`~glassmap.pose.backend.GraphBackEnd` (iSAM2, submaps, loop-closure checks) and sends back the
+correction after each key scan. After accepted loop closures (once it has caught up with its queue, at most
+every ``rebuild_period`` s) and when asked at the end of a run (:meth:`GraphWorker.finish`), it
+re-integrates the key scans at the optimised poses into a corrected occupancy grid and, when the key scans
+carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`), and sends them back.
+A reader thread in the runtime's process takes in what comes back; readers take snapshots under a lock.
+
+Every key scan is processed in order and intermediate maps are read without touching the graph
+(``GraphBackEnd.poses(refresh=False)``), so a replay of a recording reproduces the final graph exactly.
+A worker that raises, or whose process dies, is reported (:class:`GraphWorkerError` from :meth:`finish`,
+``error``) instead of being waited for; the scans go on without the back end. If the process cannot start
+(spawning must import the main module, impossible for some embedded interpreters), the back end runs in a
+thread of this process instead, with a warning.
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
 import queue
 import threading
 import time
-from dataclasses import dataclass
+import traceback
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams
-from glassmap.mapping import GlassMapper, MapperConfig
-from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.mapping import MapCopy, MapperConfig
+from glassmap.pose.backend import BackEndConfig
 from glassmap.pose.keyscan import KeyScan
 
 log = logging.getLogger(__name__)
+
+START_TIMEOUT = 60.0  # s for the process to import what it needs and say it is ready
+NICE = 5  # the worker process's niceness increment: the scans come first on a busy machine
+
+
+class GraphWorkerError(RuntimeError):
+    """The pose-graph worker failed (an exception in the back end, or its process died)."""
 
 
 @dataclass
 class GraphSnapshot:
     """What the worker has published: stamps (N,) s and poses (N, 3) of the optimised key scans (map
-    frame), the number of accepted loop closures, the corrected grid and glass mapper (None before the first
-    closure or :meth:`GraphWorker.finish`; the mapper also without a mapper config), and ``version``
-    (incremented on every new corrected map)."""
+    frame), the number of accepted loop closures, the corrected occupancy grid and glass map (a
+    :class:`~glassmap.mapping.MapCopy` on the same grid; None before the first closure or
+    :meth:`GraphWorker.finish`; the glass map also without a mapper config), and ``version`` (incremented
+    on every new corrected map)."""
 
     stamps: np.ndarray
     poses: np.ndarray
     closures: int
     grid: OccupancyGrid | None
     version: int
-    glass: GlassMapper | None = None
+    glass: MapCopy | None = None
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """What the worker process needs to build the back end (picklable)."""
+
+    config: BackEndConfig
+    sigma_hit: float
+    occupancy: OccupancyParams
+    resolution: float
+    mapper: MapperConfig | None
+    rebuild_period: float
 
 
 class GraphWorker:
-    """A :class:`GraphBackEnd` in a daemon thread (see the module docstring)."""
+    """A :class:`~glassmap.pose.backend.GraphBackEnd` in a helper process (see the module docstring).
+
+    in_process=True runs it in a thread of this process instead (tests, or where no process can start)."""
 
     def __init__(self, config: BackEndConfig = BackEndConfig(), sigma_hit: float = 0.03,
                  occupancy: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
-                 mapper: MapperConfig | None = None, classifier=None, rebuild_period: float = 5.0) -> None:
-        self.backend = GraphBackEnd(config, sigma_hit)
-        self.occupancy = occupancy
-        self.resolution = resolution
-        self.mapper, self.classifier = mapper, classifier
-        self.rebuild_period = rebuild_period  # s: at most one corrected-map rebuild per period
-        self._dirty = False  # a closure moved the graph since the last corrected map
-        self._last_rebuild = -float("inf")
-        self._queue: queue.SimpleQueue[KeyScan | None] = queue.SimpleQueue()
-        self._lock = threading.Lock()
+                 mapper: MapperConfig | None = None, rebuild_period: float = 5.0, in_process: bool = False) -> None:
+        self._settings = _Settings(config, sigma_hit, occupancy, resolution, mapper, rebuild_period)
+        self._lock = threading.Condition()
         self._correction = np.zeros(3)
         self._snapshot = GraphSnapshot(np.zeros(0), np.zeros((0, 3)), 0, None, 0)
-        self._pending = 0
-        self._idle = threading.Condition()
-        self.busy_time = 0.0  # s spent in the back end
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="pose-graph", daemon=True)
-        self._thread.start()
+        self._submitted = 0
+        self._done = 0  # key scans the back end has taken in
+        self._final: GraphSnapshot | None = None
+        self._finish_token = 0
+        self._closing = False
+        self.busy_time = 0.0  # s (wall clock of the worker) spent in the back end and building corrected maps
+        self.closures = 0
+        self.map_seconds = 0.0  # s the worker took to build the latest corrected maps
+        self.error: GraphWorkerError | None = None
+        self.in_process = in_process
+        self._process = None
+        if not in_process:
+            try:
+                self._start_process()
+            except GraphWorkerError as exc:
+                log.warning("%s; the pose graph runs in a thread of this process instead (scans are slower while "
+                            "it optimises)", exc)
+                self.in_process = True
+        if self.in_process:
+            self._inbox, self._outbox = queue.SimpleQueue(), queue.SimpleQueue()
+            self._thread = threading.Thread(target=serve, args=(self._inbox, self._outbox, self._settings),
+                                            name="pose-graph", daemon=True)
+            self._thread.start()
+        self._reader = threading.Thread(target=self._read, name="pose-graph-reader", daemon=True)
+        self._reader.start()
 
+    def _start_process(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._inbox, self._outbox = ctx.Queue(), ctx.Queue()
+        self._inbox.cancel_join_thread()  # never wait at exit to hand a dead worker what it will not read
+        self._process = ctx.Process(target=serve, args=(self._inbox, self._outbox, self._settings, os.getpid()),
+                                    name="pose-graph", daemon=True)
+        try:
+            self._process.start()
+        except (AssertionError, OSError) as exc:  # e.g. inside a daemonic process, which may have no children
+            self._process = None
+            raise GraphWorkerError(f"the pose-graph worker process could not start ({exc})") from exc
+        deadline = time.monotonic() + START_TIMEOUT
+        while True:
+            try:
+                msg = self._outbox.get(timeout=0.2)
+            except queue.Empty:
+                msg = None
+            if msg is not None and msg[0] == "ready":
+                return
+            if not self._process.is_alive() or time.monotonic() > deadline:
+                code = self._process.exitcode
+                self._process.kill()
+                self._process.join(1.0)
+                self._process = None
+                raise GraphWorkerError(f"the pose-graph worker process did not start (exit code {code})")
+
+    # -- the processing thread's side ------------------------------------------------------------------
     def submit(self, key: KeyScan) -> None:
-        """Queue one key scan (from the processing thread; returns at once)."""
-        with self._idle:
-            self._pending += 1
-        self._queue.put(key)
+        """Queue one key scan (from the processing thread; returns at once). Dropped once the worker failed."""
+        if self.error is not None or self._closing:
+            return
+        with self._lock:
+            self._submitted += 1
+        self._inbox.put(("key", compact(key)))
 
     def correction(self) -> np.ndarray:
         """(3,) the latest correction: compose(correction, front-end pose) = corrected pose."""
@@ -83,67 +159,205 @@ class GraphWorker:
         with self._lock:
             return self._snapshot
 
+    @property
+    def pending(self) -> int:
+        """Key scans submitted and not yet in the graph."""
+        with self._lock:
+            return self._submitted - self._done
+
     def finish(self, timeout: float = 60.0) -> GraphSnapshot:
-        """Wait until every submitted key scan is in the graph, build the corrected grid at the final
-        solution, and return the snapshot. Raises TimeoutError if the worker does not catch up in time."""
+        """Wait until every submitted key scan is in the graph, build the corrected maps at the final
+        solution, and return the snapshot. Raises GraphWorkerError if the worker failed or died, TimeoutError
+        if it does not catch up in time."""
+        with self._lock:
+            self._finish_token += 1
+            token = self._finish_token
+            self._final = None
+        self._inbox.put(("finish", token))
         deadline = time.monotonic() + timeout
-        with self._idle:
-            while self._pending and self.error is None:
+        with self._lock:
+            while self._final is None and self.error is None:
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise TimeoutError(f"the pose-graph worker still has {self._pending} key scans after {timeout} s")
-                self._idle.wait(left)
-        if self.error is not None:
-            raise RuntimeError(f"the pose-graph worker failed: {self.error}") from self.error
-        self._publish(grid=True)
-        return self.snapshot()
-
-    def close(self) -> None:
-        self._queue.put(None)
-        self._thread.join(timeout=5.0)
-
-    def _publish(self, grid: bool) -> None:
-        be = self.backend
-        self._dirty, self._last_rebuild = False, time.monotonic()
-        poses = be.poses()
-        occ = gm = None
-        if grid and len(be):
-            occ, gm = be.corrected_maps(self.occupancy, self.resolution, poses, self.mapper, self.classifier)
-        with self._lock:
-            old = self._snapshot
-            self._snapshot = GraphSnapshot(be.stamps(), poses, len(be.closures), occ if grid else old.grid,
-                                           old.version + int(grid), gm if grid else old.glass)
-
-    def _run(self) -> None:
-        while True:
-            key = self._queue.get()
-            if key is None:
-                return
-            t = time.perf_counter()
-            try:
-                closures = self.backend.add(key)
-                corr = self.backend.correction()
-                with self._lock:
-                    self._correction = corr
-                if closures:
-                    log.info("loop closure at t=%.2f: %d accepted (%d in all)", key.stamp, len(closures),
-                             len(self.backend.closures))
-                    self._dirty = True
-                # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
-                if self._dirty and self._queue.empty() and time.monotonic() - self._last_rebuild >= self.rebuild_period:
-                    self._publish(grid=True)
-            except Exception as exc:  # reported by finish(); the scans go on without the back end
-                log.error("pose-graph worker stopped: %s: %s", type(exc).__name__, exc)
-                self.error = exc
-            finally:
-                self.busy_time += time.perf_counter() - t
-                with self._idle:
-                    self._pending -= 1
-                    self._idle.notify_all()
+                    raise TimeoutError(f"the pose-graph worker still has {self._submitted - self._done} key scans "
+                                       f"after {timeout} s")
+                self._lock.wait(min(left, 0.5))
             if self.error is not None:
-                with self._idle:  # drain: nothing more will be processed
-                    while not self._queue.empty():
-                        self._queue.get()
-                        self._pending -= 1
-                    self._idle.notify_all()
+                raise self.error
+            return self._final
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop the worker once it has taken in what is queued, waiting up to ``timeout`` s; a process that
+        takes longer is killed (a thread is left to end on its own: it is a daemon)."""
+        if self._closing:
+            return
+        self._closing = True
+        self._inbox.put(None)
+        if self._process is not None:
+            self._process.join(timeout)
+            if self._process.is_alive():
+                log.warning("the pose-graph worker did not stop within %.0f s; killed", timeout)
+                self._process.kill()
+                self._process.join(1.0)
+        else:
+            self._thread.join(timeout)
+        self._reader.join(timeout)
+
+    # -- the reader thread -------------------------------------------------------------------------------
+    def _alive(self) -> bool:
+        return self._process.is_alive() if self._process is not None else self._thread.is_alive()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                msg = self._outbox.get(timeout=0.5)
+            except queue.Empty:
+                if self._alive():
+                    continue
+                if not self._closing:
+                    code = self._process.exitcode if self._process is not None else None
+                    self._fail(GraphWorkerError(f"the pose-graph worker process ended unexpectedly (exit code "
+                                                f"{code}); the scans go on without loop closure"))
                 return
+            except (EOFError, OSError) as exc:  # the pipe broke: the process is gone
+                if not self._closing:
+                    self._fail(GraphWorkerError(f"lost the pose-graph worker ({type(exc).__name__}: {exc})"))
+                return
+            kind = msg[0]
+            if kind == "done":
+                _, done, corr, closures, busy = msg
+                with self._lock:
+                    self._done, self._correction, self.busy_time = done, corr, busy
+                    if closures > self.closures:
+                        log.info("loop closure: %d accepted in all (%d key scans)", closures, done)
+                    self.closures = closures
+            elif kind == "maps":
+                _, token, stamps, poses, closures, occ, glass, seconds = msg
+                with self._lock:
+                    self.map_seconds = seconds
+                    old = self._snapshot
+                    self._snapshot = GraphSnapshot(stamps, poses, closures, occ, old.version + 1, glass)
+                    if token is not None and token == self._finish_token:
+                        self._final = self._snapshot
+                    self._lock.notify_all()
+            elif kind == "error":
+                self._fail(GraphWorkerError(f"the pose-graph worker failed: {msg[1]}"))
+            elif kind == "stopped":
+                return
+
+    def _fail(self, err: GraphWorkerError) -> None:
+        log.error("%s", err)
+        with self._lock:
+            self.error = err
+            self._lock.notify_all()
+
+
+def graph_messages(snapshot: GraphSnapshot, stamp_ns: int, frame_id: str, time_base) -> list[tuple[str, bytes]]:
+    """CDR of ``/pose_graph/path`` (the optimised key scans, stamped through ``time_base``, a
+    :class:`runtime.messages.TimeBase`) and, with the corrected maps, ``/map/corrected`` and
+    ``/glass/map/corrected``, as (topic, bytes), in whatever process calls it: building them holds the GIL
+    for ~0.1 s on a 50 x 40 m grid, so the runtime has its map worker do it."""
+    from runtime import messages as M
+
+    msgs = [("/pose_graph/path", M.path_msg([time_base.ns(t) for t in snapshot.stamps], snapshot.poses, stamp_ns,
+                                            frame_id))]
+    if snapshot.grid is not None:
+        g = snapshot.grid.grid
+        msgs.append(("/map/corrected", M.occupancy_grid_msg(snapshot.grid.probability(), tuple(g.origin),
+                                                            g.resolution, stamp_ns, frame_id)))
+    if snapshot.glass is not None:
+        g = snapshot.glass.grid
+        msgs.append(("/glass/map/corrected", M.glass_grid_msg(snapshot.glass.confidence_map(), tuple(g.origin),
+                                                              g.resolution, stamp_ns, frame_id)))
+    ts = M.typestore()
+    return [(topic, bytes(ts.serialize_cdr(m, M.TOPICS[topic]))) for topic, m in msgs]
+
+
+def compact(key: KeyScan) -> KeyScan:
+    """The key scan without what the back end never reads: the raw scan keeps its ranges, geometry and
+    stamps (the corrected glass map's steps read only those), not its intensities and extra echoes."""
+    if key.scan is None:
+        return key
+    return replace(key, scan=replace(key.scan, intensities=None, echoes=None, echo_intensities=None))
+
+
+# -- run in the worker process (or thread) ----------------------------------------------------------------
+def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> None:
+    """The worker's loop: messages ("key", KeyScan), ("finish", token) or None (stop) from ``inbox``;
+    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, closures, grid, glass, s to build them),
+    ("error", text), ("stopped",) to ``outbox``. ``parent_pid``: in a process, end when that process is gone."""
+    if parent_pid is not None:
+        _process_setup(parent_pid)
+    from glassmap.pose.backend import GraphBackEnd
+
+    be = GraphBackEnd(settings.config, settings.sigma_hit)
+    outbox.put(("ready",))
+    busy, dirty, last_rebuild, failed = 0.0, False, -float("inf"), False
+
+    def send_maps(token, refresh: bool) -> None:
+        nonlocal dirty, last_rebuild
+        dirty, last_rebuild = False, time.monotonic()
+        poses = be.poses(refresh=refresh)
+        t = time.perf_counter()
+        occ = glass = None
+        if len(be):
+            occ, gm = be.corrected_maps(settings.occupancy, settings.resolution, poses, settings.mapper)
+            if gm is not None:
+                glass = gm.copy_maps()
+                occ = glass.occupancy
+        outbox.put(("maps", token, be.stamps(), poses, len(be.closures), occ, glass, time.perf_counter() - t))
+
+    while True:
+        msg = inbox.get()
+        if msg is None:
+            outbox.put(("stopped",))
+            return
+        if failed:
+            continue
+        t = time.perf_counter()
+        try:
+            if msg[0] == "key":
+                if be.add(msg[1]):
+                    dirty = True
+                busy += time.perf_counter() - t
+                outbox.put(("done", len(be), be.correction(), len(be.closures), busy))
+                # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
+                if dirty and _empty(inbox) and time.monotonic() - last_rebuild >= settings.rebuild_period:
+                    t = time.perf_counter()
+                    send_maps(None, refresh=False)
+                    busy += time.perf_counter() - t
+            else:
+                send_maps(msg[1], refresh=True)
+                busy += time.perf_counter() - t
+        except Exception as exc:  # reported to the runtime; the scans go on without the back end
+            failed = True
+            outbox.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+
+
+def _empty(inbox) -> bool:
+    try:
+        return inbox.empty()
+    except (OSError, NotImplementedError):
+        return True
+
+
+def _process_setup(parent_pid: int) -> None:
+    """In the worker process: Ctrl-C is the runtime's to handle (it stops the worker), lower priority than
+    the scans, one BLAS thread, and end when the runtime's process is gone (a SIGKILL runs no clean-up)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(NICE)
+    except OSError:
+        pass
+    from runtime.tuning import one_blas_thread
+
+    one_blas_thread()
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

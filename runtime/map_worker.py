@@ -59,6 +59,12 @@ class MapWorker:
         """CDR of the nav_msgs/OccupancyGrid (/map) and the foxglove_msgs/Grid (/glass/map) of ``maps``."""
         return await self._run(map_messages, maps, stamp_ns, frame_id)
 
+    async def graph_messages(self, snapshot, stamp_ns: int, frame_id: str, time_base) -> list[tuple[str, bytes]]:
+        """CDR of the pose graph's messages (:func:`runtime.graph_worker.graph_messages`)."""
+        from runtime.graph_worker import graph_messages
+
+        return await self._run(graph_messages, snapshot, stamp_ns, frame_id, time_base)
+
     def shutdown(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)

@@ -57,8 +57,7 @@ class MappingProcessor:
             from glassmap.pose.backend import BackEndConfig
             from runtime.graph_worker import GraphWorker
 
-            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy,
-                                     mapper=mcfg, classifier=self.mapper.classifier)
+            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)

@@ -54,6 +54,7 @@ class ReplayResult:
     final_pose: tuple[float, float, float] | None = None
     pose_graph: object | None = None  # with mapping.loop_closure: the final runtime.graph_worker.GraphSnapshot
     corrected: object | None = None  # with a world and loop closure: the MapEvaluation of the corrected glass map
+    graph_wait: float = 0.0  # s waited after the last scan for the pose graph to catch up and build its final maps
 
     @property
     def scans_per_second(self) -> float:
@@ -244,7 +245,9 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     res.data_time = float(last - first) if first is not None else 0.0
     est = proc.estimator.estimate()
     res.final_pose = (est.x, est.y, est.yaw)
+    t_graph = time.perf_counter()
     res.pose_graph = proc.finish_graph()
+    res.graph_wait = time.perf_counter() - t_graph
     if out_dir:
         res.exports = proc.export(out_dir, stem)
         graph = res.pose_graph

@@ -96,18 +96,17 @@ class RecordingSink:
             self._static_sent = True
 
     def pose_graph(self, stamp_ns: int, snapshot) -> None:
-        """/pose_graph/path (the optimised key-scan trajectory) and /map/corrected (the grid re-integrated at
-        it) of a :class:`~runtime.graph_worker.GraphSnapshot`."""
-        self.rec.write("/pose_graph/path", M.path_msg([self.tb.ns(t) for t in snapshot.stamps], snapshot.poses,
-                                                      stamp_ns, self.map_frame), stamp_ns)
-        if snapshot.grid is not None:
-            g = snapshot.grid.grid
-            self.rec.write("/map/corrected", M.occupancy_grid_msg(snapshot.grid.probability(), tuple(g.origin),
-                                                                  g.resolution, stamp_ns, self.map_frame), stamp_ns)
-        if snapshot.glass is not None:
-            g = snapshot.glass.grid
-            self.rec.write("/glass/map/corrected", M.glass_grid_msg(snapshot.glass.confidence_map(), tuple(g.origin),
-                                                                    g.resolution, stamp_ns, self.map_frame), stamp_ns)
+        """/pose_graph/path (the optimised key-scan trajectory), /map/corrected and /glass/map/corrected (the
+        maps re-integrated at it) of a :class:`~runtime.graph_worker.GraphSnapshot`, built here (see
+        :meth:`cdr` for messages built elsewhere)."""
+        from runtime.graph_worker import graph_messages
+
+        self.cdr(stamp_ns, graph_messages(snapshot, stamp_ns, self.map_frame, self.tb))
+
+    def cdr(self, stamp_ns: int, messages: list[tuple[str, bytes]]) -> None:
+        """Messages serialised elsewhere, as (topic, CDR bytes)."""
+        for topic, data in messages:
+            self.rec.write(topic, data, stamp_ns)
 
     def maps(self, stamp_ns: int, occupancy_cdr: bytes, glass_cdr: bytes) -> None:
         """/map and /glass/map, serialised elsewhere (see :class:`runtime.map_worker.MapWorker`)."""

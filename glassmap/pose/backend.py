@@ -28,7 +28,6 @@ import numpy as np
 from glassmap.grid import OccupancyGrid, OccupancyParams
 from glassmap.mapping import GlassMapper, MapperConfig
 from glassmap.pose.corrected import rebuild_maps
-from glassmap.pose.graph import PoseGraph
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, relative
@@ -82,7 +81,7 @@ class GraphBackEnd:
 
     def __init__(self, config: BackEndConfig = BackEndConfig(), sigma_hit: float = 0.03) -> None:
         self.config = config
-        self.graph: PoseGraph | None = None
+        self.graph = None  # the PoseGraph, from the first key scan (gtsam is imported then: not by the config)
         self.submaps = SubmapStore(config.submaps)
         self.closer = LoopCloser(config.closure, sigma_hit)
         self.keys: list[KeyScan] = []
@@ -95,6 +94,8 @@ class GraphBackEnd:
     def add(self, key: KeyScan) -> list[Closure]:
         """Add one key scan; returns the loop closures accepted with it."""
         if self.graph is None:
+            from glassmap.pose.graph import PoseGraph
+
             self.graph = PoseGraph(key.pose, np.diag([1e-6, 1e-6, 1e-6]))
             node = 0
             self.travel.append(0.0)
@@ -123,9 +124,13 @@ class GraphBackEnd:
         self.closures.extend(out)
         return out
 
-    def poses(self) -> np.ndarray:
-        """(N, 3) optimised key-scan poses (base, map frame)."""
-        return self.graph.refresh() if self.graph is not None else np.zeros((0, 3))
+    def poses(self, refresh: bool = True) -> np.ndarray:
+        """(N, 3) optimised key-scan poses (base, map frame). refresh=False: the solution as of the last
+        loop closure (or read-back), the newest nodes chained on it, without handing iSAM2 the pending batch:
+        reading it changes nothing in the graph, so when it is read does not matter to the final solution."""
+        if self.graph is None:
+            return np.zeros((0, 3))
+        return self.graph.refresh() if refresh else self.graph.poses
 
     def correction(self) -> np.ndarray:
         """(3,) the rigid transform taking front-end poses near the newest key scan to the corrected frame."""
@@ -140,12 +145,12 @@ class GraphBackEnd:
         return np.array([k.stamp for k in self.keys])
 
     def corrected_maps(self, params: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
-                       poses: np.ndarray | None = None, mapper: MapperConfig | None = None, classifier=None
+                       poses: np.ndarray | None = None, mapper: MapperConfig | None = None
                        ) -> tuple[OccupancyGrid, GlassMapper | None]:
         """The maps that follow the corrected trajectory: every key scan re-integrated at its optimised pose
         (``poses``, default the current solution); see :func:`glassmap.pose.corrected.rebuild_maps`."""
         poses = self.poses() if poses is None else poses
-        return rebuild_maps(self.keys, poses, params, resolution, mapper, classifier)
+        return rebuild_maps(self.keys, poses, params, resolution, mapper)
 
     def correct(self, pose: np.ndarray) -> np.ndarray:
         """A front-end pose (3,) in the corrected frame."""

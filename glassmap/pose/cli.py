@@ -74,14 +74,17 @@ def register(subparsers) -> None:
                        description="For each seed: simulate a run, estimate poses + covariances online, build "
                        "glass maps with each registration method from the estimator's laser poses and per-beam "
                        "registration sigma (sqrt(sigma_xy^2 + (r sigma_theta)^2 + sigma_r^2)), and score them "
-                       "against the blueprint (classification error, as in `glassmap glass experiment`). Writes a CSV, a "
-                       "summary and a box plot.")
+                       "against the blueprint (classification error, as in `glassmap glass experiment`). With "
+                       "--loop-closure, also the maps rebuilt from the key scans at the front end's poses "
+                       "(<method>@keys) and at the pose graph's optimised poses (<method>@keys+lc). Writes a CSV, a "
+                       "summary with robust3's margins over direct, and a box plot.")
     add_world(x)
     x.add_argument("--route", default="short", help="route (default: short; 'main' is 4x longer)")
     add_seeds(x, "0-9")
     x.add_argument("--methods", default="direct,robust3,robust5",
                    help="registration methods (default: direct,robust3,robust5)")
     x.add_argument("--glass-every", type=int, default=4, help="map glass on every k-th scan (default: 4 = 10 Hz)")
+    add_loop_closure(x, default=False)
     add_out(x, "out/pose")
     x.set_defaults(func=_experiment)
 
@@ -217,13 +220,15 @@ def _experiment(args: argparse.Namespace) -> int:
 
     seeds = args.seeds
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every)
+    cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every,
+                            loop_closure=args.loop_closure)
     clf = GlassClassifier.load_default()
     rows = []
     for s in tqdm(seeds, desc="online trials", unit="trial"):
         rows.extend(run_online_trial(cfg, s, classifier=clf))
     os.makedirs(args.out, exist_ok=True)
-    stem = os.path.join(args.out, f"online_{args.world}_{args.route}")
+    world = os.path.splitext(os.path.basename(args.world))[0]
+    stem = os.path.join(args.out, f"online_{world}_{args.route}" + ("_loop_closure" if args.loop_closure else ""))
     write_csv(stem + ".csv", rows)
     title = (f"online: {args.world}/{args.route}, {len(seeds)} trials, poses + sigma from the pose estimator")
     box_plot(stem + ".png", rows, title)
@@ -236,6 +241,19 @@ def _experiment(args: argparse.Namespace) -> int:
 
     text += (f"\npose: ATE RMSE mean {100 * np.mean(ate):.1f} cm (worst {100 * np.max(ate):.1f}), mean NEES "
              f"{np.mean(nees):.2f}, median registration sigma {100 * np.median(sig):.1f} cm")
+    from glassmap.pose.experiment import margins
+
+    for m in margins(summary, methods[0], "robust3") if "robust3" in methods and methods[0] != "robust3" else []:
+        text += (f"\nrobust3 vs {m['base']} ({m['maps']} maps): gain in mean {100 * m['mean_gain']:+.1f} %, worst "
+                 f"{100 * m['worst_gain']:+.1f} %, std {100 * m['std_gain']:+.1f} % -> "
+                 f"{'beats it in all three' if m['beats'] else 'does not beat it in all three'}")
+    if args.loop_closure:
+        first = [r for r in rows if r["method"] == methods[0]]
+        text += (f"\nkey scans: ATE RMSE at the front end's poses mean {100 * np.mean([r['keys_ate'] for r in first]):.1f}"
+                 f" cm (worst {100 * np.max([r['keys_ate'] for r in first]):.1f}), at the optimised poses mean "
+                 f"{100 * np.mean([r['keys_lc_ate'] for r in first]):.1f} cm (worst "
+                 f"{100 * np.max([r['keys_lc_ate'] for r in first]):.1f}); loop closures per trial "
+                 f"{[r['closures'] for r in first]}, of them false {[r['false_closures'] for r in first]}")
     with open(stem + ".txt", "w") as f:
         f.write(text + "\n")
     print(text)

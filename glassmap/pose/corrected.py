@@ -35,14 +35,25 @@ def relative_sigma(key: KeyScan, ranges: np.ndarray, range_sigma: float = 0.01,
     return np.where(np.isfinite(r_in), np.sqrt(sxy2 + r * r * sth2 + sr * sr), np.nan)
 
 
+class NoClassifier:
+    """The classifier of a glass map rebuilt from key scans: p(glass) comes with the key scans, so nothing
+    may classify (and no network is loaded)."""
+
+    uses_echoes = False
+
+    def predict_scan(self, *args, **kwargs) -> np.ndarray:
+        raise RuntimeError("a glass map rebuilt from key scans takes p(glass) from the key scans (KeyScan.p_glass); "
+                           "it does not classify")
+
+
 def rebuild_maps(keys: Sequence[KeyScan], poses: np.ndarray, occupancy: OccupancyParams = OccupancyParams(),
-                 resolution: float = 0.05, mapper: MapperConfig | None = None, classifier=None
+                 resolution: float = 0.05, mapper: MapperConfig | None = None, grid: MapGrid | None = None
                  ) -> tuple[OccupancyGrid, GlassMapper | None]:
-    """The occupancy grid of ``keys`` at ``poses`` (N, 3) (base, map frame), and with ``mapper`` (and the
-    ``classifier`` it would load otherwise; not called: p(glass) comes with the key scans) a
-    :class:`GlassMapper` whose glass map is built from the key scans that carry p(glass)."""
-    occ = OccupancyGrid(MapGrid(resolution), occupancy)
-    gm = GlassMapper(occ, mapper, classifier=classifier) if mapper is not None else None
+    """The occupancy grid of ``keys`` at ``poses`` (N, 3) (base, map frame), and with ``mapper`` a
+    :class:`GlassMapper` whose glass map is built from the key scans that carry p(glass). ``grid``: an empty
+    grid to build on (default: a new one of ``resolution``), e.g. one aligned with a blueprint."""
+    occ = OccupancyGrid(grid if grid is not None else MapGrid(resolution), occupancy)
+    gm = GlassMapper(occ, mapper, classifier=NoClassifier()) if mapper is not None else None
     for pose, k in zip(np.asarray(poses, dtype=np.float64), keys):
         lp = compose(pose, k.mount)
         if gm is None or k.scan is None or k.p_glass is None:

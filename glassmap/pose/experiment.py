@@ -7,17 +7,24 @@ registration sigma. The mappers share the estimator's grid (each its own glass l
 the estimator's occupancy update uses the first mapper's protect mask so that glass cells are kept as the
 glass-map helper's trial does. Scoring is the glass-map helper's (``glassmap.eval``): blueprint wall/glass
 cells seen by a returned beam and within ``eval_radius`` of glass.
+
+With ``loop_closure`` the pose-graph back end (:class:`~glassmap.pose.backend.GraphBackEnd`) also takes every
+key scan (with its p(glass)), and after the run each method's glass map is rebuilt from the key scans twice
+(:func:`~glassmap.pose.corrected.rebuild_maps`, registration sigma relative to the map): at the front end's
+poses (``<method>@keys``: no loop closure) and at the graph's optimised poses (``<method>@keys+lc``), so the
+two differ only by the loop closures. The online maps (``<method>``) are scored as without it.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from glassmap.pose.backend import BackEndConfig
 from glassmap.pose.estimator import EstimatorConfig
-from glassmap.pose.evaluate import metrics, run_estimator
+from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, metrics, run_estimator
 
 
 @dataclass(frozen=True)
@@ -25,7 +32,8 @@ class OnlineTrialConfig:
     """world / route: simulator world and route (None = default route); methods: names from
     ``glassmap.eval.trial.METHODS``; glass_every: map glass on every k-th scan (4 -> 10 Hz, the glass-map
     experiment's rate); eval_radius (m); estimator: the pose estimator's settings; sigma_scale: multiply
-    the registration sigma (1 = as reported)."""
+    the registration sigma (1 = as reported); loop_closure: also run the pose-graph back end (``backend``)
+    and score the maps rebuilt from the key scans with and without its correction (module docstring)."""
 
     world: str = "office"
     route: str | None = None
@@ -34,6 +42,8 @@ class OnlineTrialConfig:
     eval_radius: float = 1.5
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     sigma_scale: float = 1.0
+    loop_closure: bool = False
+    backend: BackEndConfig = field(default_factory=BackEndConfig)
 
 
 def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list[dict]:
@@ -57,6 +67,12 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
     seen = np.zeros(bp.labels.shape, dtype=bool)
     state: dict = {}
     sigmas: list[float] = []
+    backend = None
+    key_index: list[int] = []  # run scan index of each key scan handed to the back end
+    if cfg.loop_closure:
+        from glassmap.pose.backend import GraphBackEnd
+
+        backend = GraphBackEnd(cfg.backend, cfg.estimator.likelihood.sigma_hit)
 
     def on_scan(i, scan, est_pose, est):
         if not state:
@@ -80,14 +96,20 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
         cy = np.floor((ey - bp.origin[1]) / bp.resolution).astype(np.int64)
         ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
         seen[cy[ok], cx[ok]] = True
-        if i % cfg.glass_every:
-            return
         mappers = state["mappers"]
         first = next(iter(mappers.values()))
+        beams = None
+        if backend is not None and est.stats.last_keyframe and est.last_key_scan is not None:
+            beams, use = first.classify(scan)
+            backend.add(replace(est.last_key_scan, scan=scan, p_glass=np.where(use, beams.p_glass, np.nan)))
+            key_index.append(i)
+        if i % cfg.glass_every:
+            return
         lp = est.laser_pose(est_pose)
         sigma = cfg.sigma_scale * est.registration_sigma(est_pose, scan.ranges)
         sigmas.append(float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else np.nan)
-        beams, use = first.classify(scan)
+        if beams is None:
+            beams, use = first.classify(scan)
         first.mark_glass_hits(beams, use, scan, lp)
         use = use & np.isfinite(sigma)
         for mp in mappers.values():
@@ -100,20 +122,82 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
     traj, est = run_estimator(run, cfg.estimator, on_scan=on_scan, occupancy=occ)
     pm = metrics(traj, run)
     mask = evaluation_mask(bp.labels, seen, bp.resolution, cfg.eval_radius)
+    common = dict(seed=seed, world=cfg.world)
+    pose_cols = dict(ate_rmse=pm.ate_rmse, ate_max=pm.ate_max, nees_mean=pm.nees_mean,
+                     sigma_median=float(np.nanmedian(sigmas)), n_scans=pm.scans)
+    maps = [(m, "online", mp) for m, mp in state["mappers"].items()]
+    lc_cols: dict = {}
+    if backend is not None:
+        from glassmap.grid import MapGrid
+        from glassmap.pose.corrected import rebuild_maps
+
+        truth = run.scan_true_poses[np.asarray(key_index, dtype=np.int64)]
+        front = np.array([k.pose for k in backend.keys])
+        optimised = backend.poses()
+        lc_cols = dict(key_scans=len(backend), closures=len(backend.closures),
+                       false_closures=_false_closures(backend.closures, truth),
+                       keys_ate=_ate(front, truth), keys_lc_ate=_ate(optimised, truth))
+        for kind, poses in (("keys", front), ("keys+lc", optimised)):
+            for m in cfg.methods:
+                grid = MapGrid(bp.resolution, origin=tuple(bp.origin), shape=bp.labels.shape, grow_step_m=5.0)
+                _, gm = rebuild_maps(backend.keys, poses, cfg.estimator.occupancy, mapper=MapperConfig(
+                    layer=f"glass_{m}", **METHODS[m]), grid=grid)
+                maps.append((f"{m}@{kind}", kind, gm))
     rows = []
-    for m, mp in state["mappers"].items():
-        lab = mp.glass.labels(mp.occupancy)
-        off = np.rint((bp.origin - mp.grid.origin) / bp.resolution).astype(int)
-        sub = np.full((h, w), -2, dtype=lab.dtype)
-        # the estimator's grid may not cover the whole blueprint: copy the overlap
-        y0, x0 = max(off[1], 0), max(off[0], 0)
-        y1, x1 = min(off[1] + h, lab.shape[0]), min(off[0] + w, lab.shape[1])
-        if y1 > y0 and x1 > x0:
-            sub[y0 - off[1]:y1 - off[1], x0 - off[0]:x1 - off[0]] = lab[y0:y1, x0:x1]
-        s = score_map(sub, bp.labels, mask)
-        rows.append(dict(seed=seed, world=cfg.world, method=m, error=s.error, error_occupied=s.error_occupied,
+    for name, kind, mp in maps:
+        s = score_map(_on_blueprint(mp, bp), bp.labels, mask)
+        rows.append(dict(common, method=name, maps=kind, error=s.error, error_occupied=s.error_occupied,
                          glass_recall=s.glass_recall, false_glass_rate=s.false_glass_rate,
-                         unregistered=s.unregistered, n_cells=s.n_cells, ate_rmse=pm.ate_rmse, ate_max=pm.ate_max,
-                         nees_mean=pm.nees_mean, sigma_median=float(np.nanmedian(sigmas)),
-                         n_scans=pm.scans, seconds=time.perf_counter() - t0))
+                         unregistered=s.unregistered, n_cells=s.n_cells, **pose_cols, **lc_cols,
+                         seconds=time.perf_counter() - t0))
     return rows
+
+
+def _ate(poses: np.ndarray, truth: np.ndarray) -> float:
+    """RMSE (m) of the positions ``poses`` (N, 3) against ``truth`` (N, 3)."""
+    if not len(poses):
+        return float("nan")
+    return float(np.sqrt(np.mean(np.sum((poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
+
+
+def _false_closures(closures, truth: np.ndarray) -> int:
+    """How many accepted closures are further than FALSE_CLOSURE_XY / _YAW from the truth (key-scan poses
+    ``truth`` (N, 3))."""
+    from glassmap.pose.motion import relative
+    from glassmap.types import wrap_angle
+
+    bad = 0
+    for c in closures:
+        tr = relative(truth[c.anchor], truth[c.node])
+        bad += int(np.hypot(tr[0] - c.pose[0], tr[1] - c.pose[1]) > FALSE_CLOSURE_XY
+                   or abs(float(wrap_angle(tr[2] - c.pose[2]))) > FALSE_CLOSURE_YAW)
+    return bad
+
+
+def _on_blueprint(mapper, bp) -> np.ndarray:
+    """The mapper's glass labels on the blueprint's cells (-2 where its grid does not reach)."""
+    lab = mapper.glass.labels(mapper.occupancy)
+    h, w = bp.labels.shape
+    off = np.rint((bp.origin - mapper.grid.origin) / bp.resolution).astype(int)
+    sub = np.full((h, w), -2, dtype=lab.dtype)
+    y0, x0 = max(off[1], 0), max(off[0], 0)
+    y1, x1 = min(off[1] + h, lab.shape[0]), min(off[0] + w, lab.shape[1])
+    if y1 > y0 and x1 > x0:
+        sub[y0 - off[1]:y1 - off[1], x0 - off[0]:x1 - off[0]] = lab[y0:y1, x0:x1]
+    return sub
+
+
+def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: str = "robust3",
+            suffixes: tuple[str, ...] = ("", "@keys", "@keys+lc")) -> list[dict]:
+    """For each map kind (method-name suffix) present in ``summary`` (:func:`glassmap.eval.experiment.summarise`
+    rows): ``other``'s mean / worst / std of the error against ``base``'s, as relative gains (positive:
+    ``other`` is lower), and whether ``other`` beats ``base`` in all three."""
+    out = []
+    for suf in suffixes:
+        a, b = summary.get(base + suf), summary.get(other + suf)
+        if a is None or b is None:
+            continue
+        gain = {k: (a[k] - b[k]) / a[k] if a[k] > 0 else float("nan") for k in ("mean", "worst", "std")}
+        out.append(dict(maps=suf.lstrip("@") or "online", base=base, other=other, **{f"{k}_gain": v for k, v in gain.items()},
+                        beats=all(b[k] < a[k] for k in ("mean", "worst", "std"))))
+    return out

@@ -4,20 +4,13 @@ carried by the key scans lands on the walls at the corrected poses."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from glassmap.mapping import MapperConfig
-from glassmap.pose.corrected import rebuild_maps, relative_sigma
+from glassmap.grid import MapGrid
+from glassmap.pose.corrected import NoClassifier, rebuild_maps, relative_sigma
 from glassmap.types import Scan
 from tests.pose.test_loop_closure import GEOM, _keys, _ring, _route
-
-
-class _NeverCalled:
-    """The mapper's classifier is not used when p(glass) comes with the key scans."""
-
-    uses_echoes = False
-
-    def predict_scan(self, *args):
-        raise AssertionError("the rebuild must not classify again")
 
 
 def test_relative_sigma_is_range_noise_without_pose_error_and_grows_with_yaw():
@@ -34,10 +27,20 @@ def test_rebuild_puts_glass_evidence_on_the_walls_at_the_given_poses():
     truth = _route([(-8.5, -4.5), (-5.0, -4.5)])
     keys = [replace(k, scan=Scan(stamp=k.stamp, ranges=k.ranges, intensities=None, geometry=GEOM),
                     p_glass=np.where(np.isfinite(k.ranges), 0.9, np.nan)) for k in _keys(_ring(), truth, 0.0)]
-    occ, gm = rebuild_maps(keys, truth, mapper=MapperConfig(), classifier=_NeverCalled())
+    occ, gm = rebuild_maps(keys, truth, mapper=MapperConfig())  # p(glass) from the key scans: no classification
     conf = gm.confidence_map()
     walls = np.isfinite(conf)
     assert walls.sum() > 200
     assert np.nanmedian(conf[walls]) > 0.6  # glass believed on the walls
     occ_only, none = rebuild_maps(keys, truth)
     assert none is None and (occ_only.occupied() == occ.occupied()).mean() > 0.99
+
+
+def test_rebuild_on_a_given_grid_keeps_its_origin_and_never_classifies():
+    truth = _route([(-8.5, -4.5), (-6.0, -4.5)])
+    keys = _keys(_ring(), truth, 0.0)
+    occ, _ = rebuild_maps(keys, truth, grid=MapGrid(0.05, origin=(-10.025, -6.025), shape=(40, 60)))
+    np.testing.assert_allclose(occ.grid.origin[0] % 0.05, 0.025, atol=1e-9)  # grown on the given lattice
+    assert occ.occupied().sum() > 50
+    with pytest.raises(RuntimeError, match="p\\(glass\\) from the key scans"):
+        NoClassifier().predict_scan(keys[0].scan)

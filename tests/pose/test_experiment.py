@@ -1,0 +1,46 @@
+"""The online experiment: robust3's margins over direct per kind of map, and (slow) a trial with the pose
+graph scores the maps rebuilt from the key scans with and without the loop closures."""
+
+import numpy as np
+import pytest
+
+from glassmap.pose.experiment import OnlineTrialConfig, margins, run_online_trial
+
+
+def _s(mean, worst, std):
+    return dict(n=3, mean=mean, worst=worst, std=std)
+
+
+def test_margins_are_relative_gains_and_beating_needs_all_three():
+    summary = {"direct": _s(0.20, 0.30, 0.05), "robust3": _s(0.18, 0.27, 0.04),
+               "direct@keys": _s(0.20, 0.30, 0.05), "robust3@keys": _s(0.18, 0.31, 0.04)}
+    out = {m["maps"]: m for m in margins(summary)}
+    assert set(out) == {"online", "keys"}  # no @keys+lc rows: not reported
+    np.testing.assert_allclose([out["online"][k] for k in ("mean_gain", "worst_gain", "std_gain")], [0.1, 0.1, 0.2])
+    assert out["online"]["beats"] and not out["keys"]["beats"]  # worse in the worst trial
+    assert out["keys"]["worst_gain"] < 0
+
+
+@pytest.mark.slow
+def test_trial_with_loop_closure_scores_maps_rebuilt_at_front_end_and_optimised_poses():
+    cfg = OnlineTrialConfig(world="glass-corridor", route=None, methods=("direct", "robust3"), loop_closure=True)
+    rows = run_online_trial(cfg, 0)
+    names = [r["method"] for r in rows]
+    assert names == ["direct", "robust3", "direct@keys", "robust3@keys", "direct@keys+lc", "robust3@keys+lc"]
+    for r in rows:
+        assert 0.0 <= r["error"] < 0.5 and r["n_cells"] > 100  # the corridor's glass walls scored
+        assert r["key_scans"] > 10 and np.isfinite(r["keys_ate"]) and np.isfinite(r["keys_lc_ate"])
+        assert r["false_closures"] <= r["closures"]
+
+
+def test_false_closures_are_those_off_the_truth_by_more_than_5_cm_or_1_deg():
+    from glassmap.pose.backend import Closure
+    from glassmap.pose.experiment import _false_closures
+
+    truth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.pi / 2], [1.0, 1.0, np.pi]])
+    cov = np.eye(3)
+    right = Closure(0, 2, np.array([1.0, 1.0, np.pi]), cov, 0.0)
+    off_xy = Closure(0, 2, np.array([1.06, 1.0, np.pi]), cov, 0.0)
+    off_yaw = Closure(1, 2, np.array([1.0, 0.0, np.radians(91.5)]), cov, 0.0)
+    assert _false_closures([right], truth) == 0
+    assert _false_closures([right, off_xy, off_yaw], truth) == 2
