@@ -130,7 +130,8 @@ def main() -> int:
     for (bx, by), gv in sorted(grad.items(), key=lambda kv: -abs(kv[1]))[:12]:
         print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {gv:+8.0f}")
     pr = np.concatenate(prof, axis=1)
-    print("field vector along forward beams (mm; positive: the wall lies further along the beam) at the true end point + s:")
+    print("field vector along forward beams (mm; positive: the wall lies further along the beam) "
+          "at the true end point + s:")
     print("   " + "  ".join(f"s {100 * sv:+.0f} cm {1000 * pr[k].mean():+6.2f}" for k, sv in enumerate(OFFSETS)))
     if args.dump:
         _dump(est, np.array([float(v) for v in args.dump.split(":")]), rebuild)
@@ -149,7 +150,8 @@ def _dump(est: PoseEstimator, xy: np.ndarray, rebuild) -> None:
             occ = "#" if est.occupancy.log_odds[iy, ix] > est.field.params.occupied_log_odds else "."
             row.append(f"{occ}{int(g['pose_hit_n'][iy, ix]):3d} ({1000 * v[0]:+4.0f},{1000 * v[1]:+4.0f})")
         print(f"y {g.cell_to_world(np.array([0, iy]))[1]:+.3f} " + " ".join(row))
-    print("x centres " + " ".join(f"{g.cell_to_world(np.array([ix, 0]))[0]:14.3f}" for ix in range(c0[0] - 4, c0[0] + 5)))
+    xs = g.cell_to_world(np.stack([np.arange(c0[0] - 4, c0[0] + 5), np.zeros(9, dtype=int)], axis=1))[:, 0]
+    print("x centres " + " ".join(f"{x:14.3f}" for x in xs))
 
 
 if __name__ == "__main__":
