@@ -145,7 +145,7 @@ class EstimatorConfig:
     integrate: bool = True
     deskew: bool = False
     map_uncertainty: bool = True
-    map_bias_per_match: float = 0.003
+    map_bias_per_match: float = 0.002
     correlated_matches: bool = False
     subcell_walls: bool = True
 
