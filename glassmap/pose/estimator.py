@@ -46,6 +46,9 @@ MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under
 MAP_VAR_YAW_LAYER = "pose_var_yaw"  # that placement's map rotation variance (rad^2), inf: no placement yet
 # ... the pivot (map frame, m) of that rotation, and the shift variance (m^2 per axis)
 MAP_SRC_LAYERS = ("pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift")
+# the systematic error (m, map frame x and y) of the cell's best placement: matches biased the same way in a
+# chain of placements add up (see EstimatorConfig.map_bias_per_match)
+MAP_SYS_LAYERS = ("pose_sys_x", "pose_sys_y")
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 
 
@@ -102,6 +105,14 @@ class EstimatorConfig:
     map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
         map built so far (see :class:`PoseEstimator`): cells remember the error model of the pose that
         placed them, and a match inherits that of the cells it matched.
+    map_bias_per_match: systematic error (m) a key scan's placement adds to that of the map region it
+        matched, along the laser's viewing direction (matches run ahead: near convex corners and the ends of
+        partly seen walls the likelihood field's wall lies slightly behind the surface, more so with range
+        noise; docs/pose.md, "Start-up bias", and how the value was chosen on validation worlds). It is a
+        vector per cell (layers ``pose_sys_x/_y``), so it grows with each generation of new map, not like a
+        random walk, and cancels where the route turns back; the reported covariance adds the matched cells'
+        mean outer product of it (see :meth:`PoseEstimator.store_map_variance`). Only the reported covariance
+        uses it (not the gate, the search window or the fusion). 0 turns it off.
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
         share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
         off (default), the filter's own covariance (which fuses every match as independent) is reported
@@ -134,6 +145,7 @@ class EstimatorConfig:
     integrate: bool = True
     deskew: bool = False
     map_uncertainty: bool = True
+    map_bias_per_match: float = 0.002
     correlated_matches: bool = False
     subcell_walls: bool = True
 
@@ -148,11 +160,14 @@ class EstimatorConfig:
 @dataclass(frozen=True)
 class MapRegion:
     """Error model of a map region (map frame): a shift of variance shift_var (m^2 per axis) plus a rotation
-    of variance yaw_var (rad^2) about pivot (2,) (m)."""
+    of variance yaw_var (rad^2) about pivot (2,) (m), plus a systematic shift sys (2,) (m; the mean over the
+    region's cells, whose second moment is sys_cov (2, 2), m^2)."""
 
     shift_var: float
     yaw_var: float
     pivot: np.ndarray
+    sys: np.ndarray = dc_field(default_factory=lambda: np.zeros(2))
+    sys_cov: np.ndarray = dc_field(default_factory=lambda: np.zeros((2, 2)))
 
 
 @dataclass
@@ -219,6 +234,7 @@ class PoseEstimator:
         self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
         self.map_region: MapRegion | None = None  # its error model (None before the first match)
         self._matched_keys: np.ndarray | None = None  # wall blocks (map-frame keys) under the last match
+        self._fused_h = np.zeros((0, 3))  # directions (rows, pose space) the last key scan's match fused
         # the filter's state is the base at the newest odometry time at or before the scan (``_last_t``); the
         # motion extrapolated past it to the scan (base frame) is carried apart, with (s extrapolated, v m/s,
         # omega rad/s, s held beyond the limit), because the next odometry message replaces it
@@ -240,7 +256,7 @@ class PoseEstimator:
             for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER):
                 if name not in self.occupancy.grid.layer_names:
                     self.occupancy.grid.add_layer(name, np.inf, np.float32)
-            for name in MAP_SRC_LAYERS:
+            for name in MAP_SRC_LAYERS + MAP_SYS_LAYERS:
                 if name not in self.occupancy.grid.layer_names:
                     self.occupancy.grid.add_layer(name, 0.0, np.float32)
 
@@ -370,6 +386,7 @@ class PoseEstimator:
         direction: nothing to fuse, nothing contradicted)."""
         cfg, st = self.config, self.stats
         st.last_fused_dims = 0
+        self._fused_h = np.zeros((0, 3))
         if res is None:
             st.no_match += 1
             return False
@@ -417,6 +434,7 @@ class PoseEstimator:
             self._scan_post = (scan.pose.copy(), scan.cov.copy())
         st.matched += 1
         st.last_fused_dims = h.shape[0]
+        self._fused_h = h
         if st.status == "lost":
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
@@ -533,12 +551,15 @@ class PoseEstimator:
             centre = (sv @ pivot) / sv.sum()  # one rotation of sd mean(sv) about here moves every cell as all did
         else:
             centre = pivot.mean(axis=0)
-        region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre)
+        sys = np.stack([g[MAP_SYS_LAYERS[0]][cy, cx], g[MAP_SYS_LAYERS[1]][cy, cx]], axis=1).astype(np.float64)
+        region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre, sys.mean(axis=0),
+                           sys.T @ sys / len(sys))
         lever = self.laser_pose_of(pose)[:2] - centre  # the robot relative to the region's pivot
         u = np.array([-lever[1], lever[0], 1.0])  # d(error)/d(d_th)
         out = region.yaw_var * np.outer(u, u)
         out[0, 0] += region.shift_var
         out[1, 1] += region.shift_var
+        out[:2, :2] += region.sys_cov
         return out, region
 
     def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
@@ -550,7 +571,12 @@ class PoseEstimator:
         The two rotations are stored as one, of variance v = v_R + P_th about the variance-weighted pivot
         A = (v_R A_R + P_th X) / v, the rest going into the shift. The pivot is inherited, not reset to X:
         a wall extended from a matched wall keeps its direction error, so along a corridor the sideways
-        error grows linearly with the distance from where that error came from, not like a random walk."""
+        error grows linearly with the distance from where that error came from, not like a random walk.
+
+        The systematic error of the placement is the region's mean one plus ``map_bias_per_match`` along the
+        laser's viewing direction (the bias of this match relative to the region), in the directions the match
+        fused only (along a featureless corridor the match says nothing along it, so it adds no bias there; a
+        scan placed by odometry alone adds none); it enters the cell's own variance as its squared length."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
         if not hit.any():
             return
@@ -572,13 +598,18 @@ class PoseEstimator:
         ok = g.in_bounds(cells)
         cells, end = cells[ok], end[ok]
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        var = (shift + vyaw * np.sum((end - pivot) ** 2, axis=1)).astype(np.float32)  # the cell's own
+        h = self._fused_h
+        bias = self.config.map_bias_per_match * np.array([np.cos(lp[2]), np.sin(lp[2]), 0.0])
+        if h.shape[0] < 3:  # its projection on the fused directions
+            bias = np.linalg.pinv(h) @ (h @ bias) if h.shape[0] else np.zeros(3)
+        sys = reg.sys + bias[:2]
+        var = (shift + float(sys @ sys) + vyaw * np.sum((end - pivot) ** 2, axis=1)).astype(np.float32)  # cell's own
         lay = g[MAP_VAR_LAYER].reshape(-1)
         before = lay[flat]
         np.minimum.at(lay, flat, var)
         upd = flat[lay[flat] < before]  # cells this scan placed better than before
         for name, val in ((MAP_VAR_YAW_LAYER, vyaw), (MAP_SRC_LAYERS[0], pivot[0]), (MAP_SRC_LAYERS[1], pivot[1]),
-                          (MAP_SRC_LAYERS[2], shift)):
+                          (MAP_SRC_LAYERS[2], shift), (MAP_SYS_LAYERS[0], sys[0]), (MAP_SYS_LAYERS[1], sys[1])):
             g[name].reshape(-1)[upd] = np.float32(val)
 
     # ------------------------------------------------------------------ outputs

@@ -243,8 +243,9 @@ def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
     places new cells with a filter covariance of (1 mm)^2 and (1 mrad)^2. The new cells keep the region's
     rotation about (almost) its pivot, so a robot at (12, 0) matching only them inherits a sideways error
     of 12 m * 0.01 rad (linear in the distance: the map's direction error persists), not the sum of the two
-    legs' squares (4^2 + 8^2) that a pivot reset to the placing position would give."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    legs' squares (4^2 + 8^2) that a pivot reset to the placing position would give. (Without the
+    systematic match bias, which adds along the viewing direction: tested below.)"""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
     g = est.occupancy.grid
     g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
     vr, pth = 1e-4, 1e-6
@@ -267,6 +268,66 @@ def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
     shift = 1e-6 + 0.5 * pth * (4.0 - pivot_x) ** 2 + 0.5 * vr * pivot_x ** 2
     assert cov[0, 0] == pytest.approx(shift, rel=0.01)
     assert region.pivot == pytest.approx([pivot_x, 0.0], abs=1e-6)
+
+
+def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
+    """A region whose cells carry a systematic error of 2 mm along x, matched by a robot looking along x:
+    the cells it places carry 2 mm + map_bias_per_match (1 mm) along x, nothing along y; a robot matching
+    only them reports (3 mm)^2 along x and nothing more sideways; looking along y, the bias adds sideways."""
+    cfg = EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.001)
+    est = PoseEstimator(cfg)
+    g = est.occupancy.grid
+    g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
+    est.map_region = MapRegion(shift_var=0.0, yaw_var=0.0, pivot=np.zeros(2), sys=np.array([0.002, 0.0]),
+                               sys_cov=np.diag([0.002 ** 2, 0.0]))
+    est.ekf.pose = np.array([4.0, 0.0, 0.0])
+    est.ekf.cov = est.ekf.actual_cov = np.diag([1e-8, 1e-8, 1e-10])
+    est._fused_h = np.eye(3)  # as after a match that constrained every direction
+    angles = np.array([0.5, 0.7, -0.5, -0.7])
+    ranges = np.full(4, 3.0)
+    est.store_map_variance(angles, ranges, 30.0)
+    placed = np.isfinite(g["pose_var_yaw"])
+    assert g["pose_sys_x"][placed] == pytest.approx(0.003) and g["pose_sys_y"][placed] == pytest.approx(0.0)
+    world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    pose2 = np.array([5.0, 0.0, 0.0])
+    cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
+    assert region.sys == pytest.approx([0.003, 0.0])
+    assert cov[0, 0] - region.shift_var == pytest.approx(0.003 ** 2, rel=1e-3)
+    assert cov[1, 1] - region.shift_var == pytest.approx(0.0, abs=1e-9)
+    # the next generation, placed looking along +y, adds the bias sideways
+    est.map_region = region
+    est.ekf.pose = np.array([5.0, 0.0, np.pi / 2])
+    est.store_map_variance(np.array([0.1]), np.array([1.0]), 30.0)
+    cell = g.world_to_cell(np.array([5.0 + np.cos(np.pi / 2 + 0.1), np.sin(np.pi / 2 + 0.1)]))
+    assert g["pose_sys_x"][cell[1], cell[0]] == pytest.approx(0.003)
+    assert g["pose_sys_y"][cell[1], cell[0]] == pytest.approx(0.001)
+
+
+def test_the_match_bias_enters_only_the_directions_the_match_fused():
+    """Along a featureless corridor (x) the match fuses y and yaw only: looking along x it adds no bias;
+    a scan placed without a match adds none either."""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.001))
+    g = est.occupancy.grid
+    g.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
+    est._fused_h = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    est.ekf.pose = np.array([0.0, 0.0, 0.3])
+    est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
+    cell = g.world_to_cell(2.0 * np.array([np.cos(0.3), np.sin(0.3)]))
+    assert g["pose_sys_x"][cell[1], cell[0]] == pytest.approx(0.0, abs=1e-9)
+    assert g["pose_sys_y"][cell[1], cell[0]] == pytest.approx(0.001 * np.sin(0.3), rel=1e-5)
+    est._fused_h = np.zeros((0, 3))
+    est.ekf.pose = np.array([0.0, 0.0, -1.0])
+    est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
+    cell = g.world_to_cell(2.0 * np.array([np.cos(-1.0), np.sin(-1.0)]))
+    assert g["pose_sys_x"][cell[1], cell[0]] == 0.0 and g["pose_sys_y"][cell[1], cell[0]] == 0.0
+
+
+def test_without_the_match_bias_the_map_carries_no_systematic_error():
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
+    est.occupancy.grid.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
+    est.store_map_variance(np.array([0.0, 1.0]), np.array([2.0, 2.0]), 30.0)
+    g = est.occupancy.grid
+    assert not np.any(g["pose_sys_x"]) and not np.any(g["pose_sys_y"])
 
 
 def test_scans_after_the_newest_odometry_report_the_extrapolation_error():

@@ -1,0 +1,158 @@
+"""Bias of single scan matches against a map built from the TRUE poses (no map-building feedback).
+
+The estimator's map (occupancy, sub-cell end points) is built from a simulated run's key scans (every 5 cm)
+at their true laser poses; each key scan is matched, with the truth as prior, against the map of the key
+scans before it (or, with --full-map, against the map of the whole run), then integrated. Prints the mean
+match error in the robot frame (along the track, positive = ahead; sideways, positive = left; yaw), where
+the score pushes the pose along the track at the true poses (the 10 cm bins of end points with the largest
+summed gradient: which features cause a bias), and the field's vector to the wall along forward beams
+around their true end points (a field whose walls lie behind the true surface pulls the robot forward).
+docs/pose.md, "Start-up bias", has the findings.
+
+Usage: .venv/bin/python scripts/pose_map_bias.py WORLD [--seconds 20] [--seed 0] [--route short]
+           [--no-range-noise] [--map-true-ranges] [--match-true-ranges] [--full-map]
+           [--field line_normals=0,pool=2] [--dump X:Y]
+Use validation worlds (seeds 1000-1999), built-in ones or tests/pose/data/*.toml, never test worlds.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+import numpy as np
+
+from glassmap.pose.estimator import HIT_LAYERS, EstimatorConfig, PoseEstimator
+from glassmap.pose.matcher import select_points
+from glassmap.sim.dataset import simulate_run
+from glassmap.sim.laser import world_laser_params
+from glassmap.sim.world import load_world
+
+OFFSETS = np.linspace(-0.05, 0.05, 11)  # m along the beam around the true end point (field profile)
+
+
+def _args() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("world")
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--route", default="short")
+    ap.add_argument("--no-range-noise", action="store_true", help="simulate the laser without range noise")
+    ap.add_argument("--map-true-ranges", action="store_true", help="build the map from the noise-free ranges")
+    ap.add_argument("--match-true-ranges", action="store_true", help="match the noise-free ranges")
+    ap.add_argument("--full-map", action="store_true", help="build the whole run's map first, then match")
+    ap.add_argument("--field", default="", help="FieldParams overrides, e.g. line_normals=0,pool=2")
+    ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
+    return ap.parse_args()
+
+
+def _field_params(cfg: EstimatorConfig, text: str) -> EstimatorConfig:
+    fp = cfg.likelihood
+    for kv in filter(None, text.split(",")):
+        k, v = kv.split("=")
+        fp = replace(fp, **{k: type(getattr(fp, k))(float(v))})
+    return replace(cfg, likelihood=fp)
+
+
+def main() -> int:
+    args = _args()
+    world = load_world(args.world)
+    laser = world_laser_params(world)
+    if args.no_range_noise:
+        laser = replace(laser, range_noise=0.0, range_noise_slope=0.0)
+    run = simulate_run(world, args.route, seed=args.seed, laser_params=laser)
+    cfg = _field_params(EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]),
+                                        background_field=False), args.field)
+    est = PoseEstimator(cfg)
+    g = est.occupancy.grid
+
+    def rebuild(xy):
+        est.field.rebuild(est.occupancy, xy, tuple(g[k] for k in HIT_LAYERS))
+
+    n = int(np.searchsorted(run.scan_stamps, args.seconds))
+    keys, last = [], None
+    for i in range(n):
+        if last is None or np.hypot(*(run.scan_true_poses[i, :2] - last)) >= cfg.keyframe_distance:
+            keys.append(i)
+            last = run.scan_true_poses[i, :2]
+    passes = [(False, True), (True, False)] if args.full_map else [(True, True)]
+    errs, grad, prof, since = [], {}, [], 0
+    for do_match, do_map in passes:
+        if do_match and not do_map:
+            rebuild(run.scan_true_poses[n // 2, :2])
+        for i in keys:
+            truth = run.scan_true_poses[i]
+            scan = run.scan(i)
+            measured = np.asarray(scan.ranges, dtype=np.float64)
+            exact = np.where(np.isfinite(measured), np.asarray(run.true_range[i], dtype=np.float64), measured)
+            lp = est.laser_pose_of(truth)
+            if do_match and est.field.ready:
+                ranges = exact if args.match_true_ranges else measured
+                pts, w, idx = select_points(scan.angles, ranges, est.mount, cfg.matcher)
+                res = est.matcher.match(est.field, pts, w, truth, np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2]))
+                c, s = np.cos(truth[2]), np.sin(truth[2])
+                if res is not None:
+                    d = res.pose - truth
+                    errs.append((run.scan_stamps[i], c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
+                a = lp[2] + scan.angles[idx]
+                u = np.stack([np.cos(a), np.sin(a)], axis=1)
+                # the score's gradient along the track at the true pose, per end point, binned by position
+                pm = lp[:2] + ranges[idx][:, None] * u
+                step = 0.002 * np.array([c, s])
+                gr = (est.field.log_likelihood(pm + step) - est.field.log_likelihood(pm - step)) / 0.004
+                for key, gv in zip(map(tuple, np.round(pm / 0.1).astype(int)), gr):
+                    grad[key] = grad.get(key, 0.0) + gv
+                # the field's vector along forward beams around their true end points (no mirror images)
+                tr = np.asarray(run.true_range[i], dtype=np.float64)[idx]
+                fwd = np.isfinite(tr) & ~run.is_ghost[i][idx] & (np.cos(scan.angles[idx]) > 0.7)
+                q = (lp[:2] + tr[fwd, None] * u[fwd])[None] + OFFSETS[:, None, None] * u[fwd][None]
+                vq = est.field.wall_vectors(q.reshape(-1, 2)).reshape(len(OFFSETS), -1, 2)
+                near = np.all(np.isfinite(vq), axis=(0, 2)) & (np.hypot(*vq[5].T) < 0.06)
+                prof.append(np.sum(vq * u[fwd][None], axis=2)[:, near])
+            if not do_map:
+                continue
+            map_ranges = exact if args.map_true_ranges else measured
+            est.occupancy.integrate(lp, scan.angles, map_ranges, scan.geometry.range_max)
+            est.ekf.pose = truth.copy()  # _store_hits places the end points at the filter's pose
+            est._store_hits(scan.angles, map_ranges, scan.geometry.range_max)
+            since += 1
+            if since >= cfg.field_refresh_scans or not est.field.ready:
+                rebuild(truth[:2])
+                since = 0
+    e = np.array(errs)
+    for lo, hi in ((0, args.seconds / 2), (args.seconds / 2, args.seconds), (0, args.seconds)):
+        m = (e[:, 0] >= lo) & (e[:, 0] < hi)
+        print(f"t {lo:4.1f}-{hi:4.1f} s: {m.sum():4d} matches, mean along {1000 * e[m, 1].mean():+6.2f} mm "
+              f"(se {1000 * e[m, 1].std() / np.sqrt(max(m.sum(), 1)):.2f}), sideways {1000 * e[m, 2].mean():+6.2f} mm, "
+              f"yaw {1000 * e[m, 3].mean():+6.3f} mrad", flush=True)
+    print(f"score gradient along the track at the true poses, summed over the run: {sum(grad.values()):+.0f} per m; "
+          "largest 10 cm bins of end points:")
+    for (bx, by), gv in sorted(grad.items(), key=lambda kv: -abs(kv[1]))[:12]:
+        print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {gv:+8.0f}")
+    pr = np.concatenate(prof, axis=1)
+    print("field vector along forward beams (mm; positive: the wall lies further along the beam) "
+          "at the true end point + s:")
+    print("   " + "  ".join(f"s {100 * sv:+.0f} cm {1000 * pr[k].mean():+6.2f}" for k, sv in enumerate(OFFSETS)))
+    if args.dump:
+        _dump(est, np.array([float(v) for v in args.dump.split(":")]), rebuild)
+    return 0
+
+
+def _dump(est: PoseEstimator, xy: np.ndarray, rebuild) -> None:
+    """The 9 x 9 cells around xy: occupied (#) or not (.), end points counted, field vector (mm)."""
+    g = est.occupancy.grid
+    rebuild(xy)
+    c0 = g.world_to_cell(xy)
+    for iy in range(c0[1] + 4, c0[1] - 5, -1):
+        row = []
+        for ix in range(c0[0] - 4, c0[0] + 5):
+            v = est.field.wall_vectors(g.cell_to_world(np.array([ix, iy]))[None])[0]
+            occ = "#" if est.occupancy.log_odds[iy, ix] > est.field.params.occupied_log_odds else "."
+            row.append(f"{occ}{int(g['pose_hit_n'][iy, ix]):3d} ({1000 * v[0]:+4.0f},{1000 * v[1]:+4.0f})")
+        print(f"y {g.cell_to_world(np.array([0, iy]))[1]:+.3f} " + " ".join(row))
+    xs = g.cell_to_world(np.stack([np.arange(c0[0] - 4, c0[0] + 5), np.zeros(9, dtype=int)], axis=1))[:, 0]
+    print("x centres " + " ".join(f"{x:14.3f}" for x in xs))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
