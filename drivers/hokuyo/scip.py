@@ -508,6 +508,11 @@ class ScipParser:
                     rows = np.frombuffer(b"".join([seg[j] for j in full.tolist()]), np.uint8).reshape(-1, LINE_PAYLOAD + 1)
                     sums = rows[:, :LINE_PAYLOAD].sum(axis=1, dtype=np.int64)
                     cand[full[((sums & 0x3F) + 0x30) != rows[:, LINE_PAYLOAD]]] = True
+                # A cut message glued to the next echo can form a line of full length whose checksum
+                # passes by chance: check any line followed by a status-sized one, or last in the buffer.
+                cand[np.flatnonzero(lens[1:] == 3)] = True
+                if k == len(lines):
+                    cand[-1] = True
                 for j in np.flatnonzero(cand).tolist():
                     if _find_echo(seg[j], strict=True) is None:
                         continue

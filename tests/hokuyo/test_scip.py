@@ -325,6 +325,26 @@ def test_random_corruption_never_escapes_and_always_resynchronises(cases, data, 
     assert isinstance(last, ScanReply) and last.timestamp_ms == 777 and (last.distances == 4321).all()
 
 
+@pytest.mark.parametrize("chunk", [None, 7, 64])
+def test_cut_message_glued_to_next_echo_in_a_line_with_a_passing_checksum_resynchronises(chunk):
+    """A message cut inside a data line, glued to the next echo so the line is 64 chars + a checksum char
+    that happens to be right: the next message is still found (a hypothesis example, kept)."""
+    a = me_message(np.full(1081, 1000), np.full(1081, 5), ts=1)
+    echo = b"ME0000108001000"
+    cut = a.index(b"\n", 200) + 1  # the start of a full data line
+    part = bytearray(a[cut:cut + 65 - len(echo)])
+    head = bytes(part[1:]) + echo[:-1]  # the line's first 64 chars but the one to adjust
+    part[0] = next(c for c in range(0x30, 0x70) if checksum(bytes([c]) + head) == echo[-1])
+    sentinel = me_message(np.full(1081, 4321), np.full(1081, 99), ts=777, echo=echo)
+    stream = a[:cut] + bytes(part) + sentinel
+    line = stream[cut:stream.index(b"\n", cut)]
+    assert len(line) == 65 and line[-1] == checksum(line[:64])  # the glued line passes as a data line
+    out = feed_all(stream, None if chunk is None else [chunk] * (len(stream) // chunk + 1))
+    assert isinstance(out[0], TruncatedMessage)
+    last = out[-1]
+    assert isinstance(last, ScanReply) and last.timestamp_ms == 777 and (last.distances == 4321).all()
+
+
 def _summary(items):
     garbage = sum(x.nbytes for x in items if isinstance(x, GarbageData))
     rest = []
