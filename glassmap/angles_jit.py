@@ -130,18 +130,11 @@ def breaks(idx: np.ndarray, r: np.ndarray, x: np.ndarray, y: np.ndarray, dphi: f
 def piece_moments(x: np.ndarray, y: np.ndarray, is_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pieces of ``is_start`` (k of them): their first points (k,) and moments (2k - 1, 6): the k
     pieces', then the sums of adjacent pieces' (pieces 0 + 1, 1 + 2, ...)."""
-    k = 0
-    for i in range(is_start.shape[0]):
-        if is_start[i]:
-            k += 1
+    seg, k = labels(is_start)
     starts = np.empty(k, np.int64)
-    seg = np.empty(x.shape[0], np.int64)
-    s = -1
     for i in range(x.shape[0]):
         if is_start[i]:
-            s += 1
-            starts[s] = i
-        seg[i] = s
+            starts[seg[i]] = i
     mom = np.zeros((max(2 * k - 1, 0), 6))
     mom[:k] = moments(x, y, seg, k)
     for j in range(k - 1):
