@@ -187,12 +187,7 @@ def point_cosines(ux: np.ndarray, uy: np.ndarray, idx: np.ndarray, seg: np.ndarr
                   normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For the points on kept segments: their beam (``idx``), |cos| of the angle between the beam
     direction (ux, uy) and the segment normal, and the segment's id among the kept ones."""
-    new_id = np.empty(keep.shape[0], np.int64)
-    c = -1
-    for s in range(keep.shape[0]):
-        if keep[s]:
-            c += 1
-        new_id[s] = c
+    new_id, _ = labels(keep)
     m = 0
     for i in range(seg.shape[0]):
         if keep[seg[i]]:

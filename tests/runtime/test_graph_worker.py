@@ -27,6 +27,17 @@ def _short_keys():
     return _keys(_ring(), truth, yaw_bias=0.001)
 
 
+def _final_snapshot(keys, **kwargs):
+    """The graph of ``keys`` built by a worker, read when it has finished (the worker then closed)."""
+    w = GraphWorker(BackEndConfig(), **kwargs)
+    try:
+        for k in keys:
+            w.submit(k)
+        return w.finish()
+    finally:
+        w.close()
+
+
 def test_worker_builds_the_same_graph_as_the_back_end_in_line_and_a_corrected_grid():
     keys = _short_keys()
     inline = GraphBackEnd(BackEndConfig())
@@ -48,13 +59,7 @@ def test_worker_builds_the_same_graph_as_the_back_end_in_line_and_a_corrected_gr
 
 def test_sink_records_the_optimised_path_and_the_corrected_map(tmp_path):
     keys = _short_keys()[:12]
-    w = GraphWorker(BackEndConfig())
-    try:
-        for k in keys:
-            w.submit(k)
-        snap = w.finish()
-    finally:
-        w.close()
+    snap = _final_snapshot(keys)
     tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
     rec = McapRecorder(tmp_path / "g.mcap")
     RecordingSink(rec, tb).pose_graph(tb.ns(10.0), snap)
@@ -188,13 +193,7 @@ def test_map_worker_builds_the_graph_messages_the_sink_would():
     from runtime.map_worker import MapWorker
 
     keys = _short_keys()[:12]
-    w = GraphWorker(BackEndConfig(), mapper=None)
-    try:
-        for k in keys:
-            w.submit(k)
-        snap = w.finish()
-    finally:
-        w.close()
+    snap = _final_snapshot(keys, mapper=None)
     tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
 
     async def build():
