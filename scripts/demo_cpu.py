@@ -23,19 +23,9 @@ import tempfile
 import threading
 import time
 
+from memwatch import descendants  # scripts/ is on sys.path when this runs as a script
+
 TICK = os.sysconf("SC_CLK_TCK")
-
-
-def _tree(pid: int) -> list[int]:
-    out = [pid]
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{tid}/children") as f:
-                for child in f.read().split():
-                    out += _tree(int(child))
-    except OSError:
-        pass
-    return out
 
 
 def _role(pid: int, root: int) -> str | None:
@@ -66,7 +56,7 @@ def run(duration: float, demo_args: list[str]) -> tuple[int, dict[str, float]]:
     reader.start()
     cpu: dict[tuple[str, int, bool], float] = {}
     while p.poll() is None:
-        for pid in _tree(p.pid):
+        for pid in descendants(p.pid):
             role = _role(pid, p.pid)
             if role is None:
                 continue
