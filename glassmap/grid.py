@@ -11,6 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .grid_jit import free_and_hit_update
+
+_NO_PROTECT = np.zeros(0, dtype=bool)
+
 
 class MapGrid:
     """Grid geometry plus named layers that grow together as the robot explores.
@@ -181,28 +185,19 @@ class OccupancyGrid:
                              "to have it evaluated after the grid grows)")
 
         # Free space: samples every 0.7 cell along each clearing beam (ragged: each beam only up to its own
-        # length), stopping one cell short of a hit. Fancy-index "+=" applies once per distinct cell, which
-        # is the once-per-scan update we want.
+        # length), stopping one cell short of a hit; each cell crossed is lowered once per scan, each hit
+        # cell then raised once (glassmap/grid_jit.py).
         step = 0.7 * g.resolution
         lengths = free_len[clear] - np.where(hit[clear], g.resolution, 0.0)
         counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
         lo = self.log_odds
-        total = int(counts.sum())
-        if total > 0:
-            beam = np.repeat(np.arange(counts.size), counts)
-            t = (np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)).astype(np.float32) * step
-            fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
-            fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
-            ix = np.floor(fx + (c[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
-            iy = np.floor(fy + (s[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
-            flat = iy * w + ix
-            if protect is not None:
-                flat = flat[~protect.ravel()[flat]]
-            lo.ravel()[flat] += p.l_free
-        if hit.any():
-            hc = g.world_to_cell(ends[hit])
-            hflat = np.unique(hc[:, 1] * w + hc[:, 0])
-            lo.ravel()[hflat] += p.l_occ
+        fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
+        fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
+        hc = g.world_to_cell(ends[hit])
+        free_and_hit_update(lo.reshape(-1), _NO_PROTECT if protect is None else protect.reshape(-1), w, fx, fy,
+                            (c[clear] / g.resolution).astype(np.float32),
+                            (s[clear] / g.resolution).astype(np.float32), counts, np.float32(step),
+                            np.float32(p.l_free), hc[:, 1] * w + hc[:, 0], np.float32(p.l_occ))
         np.clip(lo, p.l_min, p.l_max, out=lo)
         return int(clear.sum())
 
@@ -237,11 +232,15 @@ class OccupancyGrid:
     def _grow_for(self, pose, ranges, hit, clear, free_len, c, s) -> np.ndarray:
         """Grow the grid to the box of the scan's end points and cleared space (1 m margin); returns the
         map-frame end points (n, 2) (the laser position for beams without a hit)."""
-        u = np.stack([c, s], axis=1)
-        ends = pose[:2] + u * np.where(hit, ranges, 0.0)[:, None]
-        reach = pose[:2] + u * free_len[:, None]
-        pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
-        self.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
+        r = np.where(hit, ranges, 0.0)
+        ends = np.empty((r.shape[0], 2))
+        np.multiply(c, r, out=ends[:, 0])
+        np.multiply(s, r, out=ends[:, 1])
+        ends += pose[:2]
+        # the box by 1-D reductions (an axis-0 reduction of an (n, 2) array costs several times more)
+        xs = np.concatenate([ends[hit, 0], pose[0] + c[clear] * free_len[clear], pose[:1]])
+        ys = np.concatenate([ends[hit, 1], pose[1] + s[clear] * free_len[clear], pose[1:2]])
+        self.grid.ensure_contains(np.array([xs.min(), ys.min()]) - 1.0, np.array([xs.max(), ys.max()]) + 1.0)
         return ends
 
     def save_pgm_yaml(self, stem: str) -> tuple[str, str]:

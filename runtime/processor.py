@@ -75,6 +75,9 @@ class MappingProcessor:
         from drivers.hokuyo.scip import decode_scan_data, encode_values
         from glassmap.types import LaserGeometry
 
+        from glassmap.pose.matcher import warm_up as warm_up_matcher
+
+        warm_up_matcher()  # the scan matcher's compiled lookups, which the first key scan would load
         # the laser decoder's compiled multi-echo path, which the event loop would load at the first scan
         decode_scan_data("NE", np.frombuffer(encode_values(np.arange(4), 3), np.uint8).copy())
         geo = LaserGeometry()

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from glassmap.pose.field import LikelihoodField
+from glassmap.pose.matcher_jit import cell_values, scaled_squared_distances
 
 
 @dataclass(frozen=True)
@@ -172,17 +173,26 @@ class CorrelativeMatcher:
         h, wd = fld.shape
         c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
         xy0 = np.asarray(xy0, dtype=np.float64).reshape(-1, 2)  # (1, 2) or one origin per yaw (K, 2)
-        fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[:, :1] - fld.origin[0])) / res
-        fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[:, 1:] - fld.origin[1])) / res
+        ox, oy = xy0[:, 0] - fld.origin[0], xy0[:, 1] - fld.origin[1]
         off = ty.astype(np.int64) * wd + tx.astype(np.int64)  # (T,)
         wf = w.astype(np.float32)
+        px, py = np.ascontiguousarray(pts[:, 0], dtype=np.float64), np.ascontiguousarray(pts[:, 1], dtype=np.float64)
         if not bilinear:
             # points off the crop are clamped into its floor border; margin >= largest translation
-            ix = np.clip(np.floor(fx).astype(np.int64), margin, wd - 1 - margin)
-            iy = np.clip(np.floor(fy).astype(np.int64), margin, h - 1 - margin)
-            base = iy * wd + ix  # (K, n)
-            vals = field_arr[base[:, None, :] + off[None, :, None]]  # (K, T, n)
+            vals = cell_values(field_arr, px, py, c[:, 0], s[:, 0], ox, oy, res, off, margin, wd, h)  # (K, T, n)
             return vals @ wf
+        if fld.vx is not None and field_arr is fld.fine:
+            # interpolate the vector to the nearest wall point (affine in the position near a straight wall,
+            # so bilinear interpolation is exact there) and take the likelihood of its length; interpolating
+            # the likelihood itself pulls points towards cell centres (a bias that depends on where the
+            # walls lie in their cells, and that the map accumulates)
+            p = fld.params
+            d2 = scaled_squared_distances(fld.vx, fld.vy, px, py, c[:, 0], s[:, 0], ox, oy, res, off, margin, wd, h,
+                                          np.float32(-0.5 / p.sigma_hit ** 2))
+            lik = np.log(np.exp(d2) + np.float32(p.p_floor))
+            return lik @ wf
+        fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[:, :1] - fld.origin[0])) / res
+        fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[:, 1:] - fld.origin[1])) / res
         gx, gy = fx - 0.5, fy - 0.5  # cell centres at integer coordinates
         x0, y0 = np.floor(gx), np.floor(gy)
         ax, ay = (gx - x0).astype(np.float32), (gy - y0).astype(np.float32)
@@ -190,23 +200,6 @@ class CorrelativeMatcher:
         iy = np.clip(y0.astype(np.int64), margin, h - 2 - margin)
         base = (iy * wd + ix)[:, None, :] + off[None, :, None]  # (K, T, n)
         corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (wd, (1 - ax) * ay), (wd + 1, ax * ay))
-        if fld.vx is not None and field_arr is fld.fine:
-            # interpolate the vector to the nearest wall point (affine in the position near a straight wall,
-            # so bilinear interpolation is exact there) and take the likelihood of its length; interpolating
-            # the likelihood itself pulls points towards cell centres (a bias that depends on where the
-            # walls lie in their cells, and that the map accumulates)
-            vx = np.zeros(base.shape, dtype=np.float32)
-            vy = np.zeros(base.shape, dtype=np.float32)
-            for dflat, coef in corners:
-                b = base + dflat
-                cf = coef[:, None, :]
-                vx += fld.vx[b] * cf
-                vy += fld.vy[b] * cf
-            p = fld.params
-            d2 = vx * vx + vy * vy
-            d2 *= np.float32(-0.5 / p.sigma_hit ** 2)
-            lik = np.log(np.exp(d2) + np.float32(p.p_floor))
-            return lik @ wf
         out = np.zeros((len(yaws), len(off)), dtype=np.float32)
         for dflat, coef in corners:
             vals = field_arr[base + dflat]  # (K, T, n)
@@ -409,3 +402,14 @@ class CorrelativeMatcher:
             pp, pm, mp, mm = sc[7 + 4 * q: 11 + 4 * q]
             hess[k, m] = hess[m, k] = (pp - pm - mp + mm) / (4 * h[k] * h[m])
         return hess
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) the compiled lookups now, with the argument types the
+    matcher passes, rather than at the first key scan (a live run would miss scans meanwhile)."""
+    fld = LikelihoodField()
+    fld.shape = (8, 8)
+    fld.fine = fld.coarse = fld.vx = fld.vy = np.zeros(64, dtype=np.float32)
+    m, pts, w, zero = CorrelativeMatcher(), np.zeros((1, 2)), np.ones(1), np.zeros(1, dtype=np.int64)
+    m._scores(fld.coarse, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1)
+    m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1, bilinear=True)

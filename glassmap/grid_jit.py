@@ -1,0 +1,47 @@
+"""Compiled occupancy update of one scan (:meth:`glassmap.grid.OccupancyGrid.integrate`), numba ``njit``.
+
+The same float32 operations in the same order as the numpy ray walk it replaced (no fast-math), so the
+log-odds are the same to the last bit. Cells are flat indices ``iy * w + ix`` of a grid of ``h`` rows and
+``w`` columns. Compiled code is cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .jit import njit
+
+_jit = njit(cache=True, nogil=True, error_model="numpy")
+
+
+@_jit
+def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, w: int, fx: np.float32, fy: np.float32,
+                        dx: np.ndarray, dy: np.ndarray, counts: np.ndarray, step: np.float32, l_free: np.float32,
+                        hit_cells: np.ndarray, l_occ: np.float32) -> None:
+    """Add ``l_free`` once to every cell the clearing beams cross and then ``l_occ`` once to every cell in
+    ``hit_cells``, in place on the flat float32 log-odds ``lo``.
+
+    Beam b is sampled at t = i * step cells, i = 0 .. counts[b] - 1, from the laser at (fx, fy) (cells from
+    the grid's corner) along (dx[b], dy[b]) (its direction over the resolution); a sample lies in cell
+    (floor(fx + dx t), floor(fy + dy t)). Cells marked in the flat bool ``protect`` (size 0: none) are not
+    lowered. Samples off the grid are skipped (the caller grew the grid to hold the scan)."""
+    size = lo.shape[0]
+    seen = np.zeros(size, np.uint8)  # 1: lowered this scan, 2: raised this scan
+    guard = protect.shape[0] > 0
+    for b in range(counts.shape[0]):
+        cx, cy = dx[b], dy[b]
+        for i in range(counts[b]):
+            t = np.float32(i) * step
+            ix = np.int64(np.floor(fx + cx * t))
+            iy = np.int64(np.floor(fy + cy * t))
+            cell = iy * w + ix
+            if cell < 0 or cell >= size or seen[cell] == 1 or (guard and protect[cell]):
+                continue
+            seen[cell] = 1
+            lo[cell] = lo[cell] + l_free
+    for j in range(hit_cells.shape[0]):
+        cell = hit_cells[j]
+        if cell < 0 or cell >= size or seen[cell] == 2:
+            continue
+        seen[cell] = 2
+        lo[cell] = lo[cell] + l_occ

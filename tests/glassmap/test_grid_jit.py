@@ -1,0 +1,66 @@
+"""The compiled occupancy update (glassmap/grid_jit.py) gives the log-odds of the numpy ray walk it
+replaced to the last bit: beams that cross each other's cells, hits, no-return beams, NaN, a protect mask,
+growth of the grid, values clamped at the limits."""
+
+import numpy as np
+
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
+from tests.pose.synth import make_scan, room_with_corner
+
+
+def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None) -> int:
+    """``OccupancyGrid.integrate`` before the kernel (issue 19e)."""
+    pose, angles, ranges, hit, clear, free_len, c, s = occ._scan_geometry(laser_pose, angles, ranges, range_max)
+    if not clear.any():
+        return 0
+    p = occ.params
+    ends = occ._grow_for(pose, ranges, hit, clear, free_len, c, s)
+    g = occ.grid
+    w = g.shape[1]
+    if callable(protect):
+        protect = protect()
+    step = 0.7 * g.resolution
+    lengths = free_len[clear] - np.where(hit[clear], g.resolution, 0.0)
+    counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
+    lo = occ.log_odds
+    total = int(counts.sum())
+    if total > 0:
+        beam = np.repeat(np.arange(counts.size), counts)
+        t = (np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)).astype(np.float32) * step
+        fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
+        fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
+        ix = np.floor(fx + (c[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
+        iy = np.floor(fy + (s[clear] / g.resolution).astype(np.float32)[beam] * t).astype(np.int64)
+        flat = iy * w + ix
+        if protect is not None:
+            flat = flat[~protect.ravel()[flat]]
+        lo.ravel()[flat] += p.l_free
+    if hit.any():
+        hc = g.world_to_cell(ends[hit])
+        lo.ravel()[np.unique(hc[:, 1] * w + hc[:, 0])] += p.l_occ
+    np.clip(lo, p.l_min, p.l_max, out=lo)
+    return int(clear.sum())
+
+
+def test_integrate_equals_the_numpy_ray_walk_to_the_bit():
+    segs = room_with_corner()
+    rng = np.random.default_rng(11)
+    for params in (OccupancyParams(), OccupancyParams(no_return_range=2.5, max_free_range=3.0, l_free=-0.37,
+                                                      l_occ=0.91, l_min=-1.3, l_max=1.7)):
+        a = OccupancyGrid(MapGrid(shape=(60, 80), origin=(-1.5, -2.0), grow_step_m=2.0), params)
+        b = OccupancyGrid(MapGrid(shape=(60, 80), origin=(-1.5, -2.0), grow_step_m=2.0), params)
+        for i in range(14):
+            pose = np.array([rng.uniform(-2.5, 2.5), rng.uniform(-1.5, 1.5), rng.uniform(-np.pi, np.pi)])
+            scan = make_scan(segs, pose, noise=0.02, rng=rng)
+            r = scan.ranges.copy()
+            r[rng.random(r.size) < 0.05] = np.nan
+            r[rng.random(r.size) < 0.05] = np.inf
+            r[rng.random(r.size) < 0.02] *= 8.0  # long beams: growth, and beyond max_free_range
+            # a protect mask (taken after the grid grew) on some scans, the same for both
+            mask = (lambda g, seed=i: np.random.default_rng(seed).random(g.shape) < 0.3) if i % 2 else None
+            n_a = a.integrate(pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(a.grid)))
+            n_b = numpy_integrate(b, pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(b.grid)))
+            assert n_a == n_b and a.grid.shape == b.grid.shape
+            np.testing.assert_array_equal(a.grid.origin, b.grid.origin)
+            np.testing.assert_array_equal(a.log_odds, b.log_odds)
+        assert (a.log_odds == params.l_min).any() and (a.log_odds == params.l_max).any()  # limits reached
