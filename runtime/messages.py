@@ -347,16 +347,13 @@ def last_echo(scan: Scan) -> tuple[np.ndarray, np.ndarray] | None:
     further echoes (Hokuyo client): the last finite column that differs from the first echo."""
     if scan.echoes is None:
         return None
-    r = scan.ranges
-    e = np.asarray(scan.echoes, dtype=np.float64).reshape(r.shape[0], -1)
+    from runtime.messages_jit import last_echoes
+
+    r = np.ascontiguousarray(scan.ranges, dtype=np.float64)
+    e = np.ascontiguousarray(scan.echoes, dtype=np.float64).reshape(r.shape[0], -1)
     ei = (np.zeros_like(e) if scan.echo_intensities is None
-          else np.asarray(scan.echo_intensities, dtype=np.float64).reshape(r.shape[0], -1))
-    with np.errstate(invalid="ignore"):
-        fin = np.isfinite(e) & np.isfinite(r)[:, None] & (np.abs(e - r[:, None]) > 1e-6)
-    has = fin.any(axis=1)
-    col = e.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
-    rows = np.arange(r.shape[0])
-    return np.where(has, e[rows, col], np.nan), np.where(has, np.nan_to_num(ei[rows, col], nan=0.0), 0.0)
+          else np.ascontiguousarray(scan.echo_intensities, dtype=np.float64).reshape(r.shape[0], -1))
+    return last_echoes(r, e, ei)
 
 
 def as_recorded_odometry(odom: Odometry, tb: TimeBase, frame_id: str = "odom",

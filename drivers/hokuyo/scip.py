@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.hokuyo.scip_jit import decode_multi
+from drivers.hokuyo.scip_jit import decode_multi, metres
 from drivers.hokuyo.errors import (
     BadValue,
     ChecksumError,
@@ -309,6 +309,8 @@ def distances_to_metres(mm: np.ndarray, dmin: int, dmax: int) -> np.ndarray:
     """Millimetres -> metres (REP 117). Code 1 ("no object in range") and readings above ``dmax`` are
     +inf (no return); other values below ``dmin`` (error codes 0, 2..) and -1 (absent echo) are NaN."""
     mm = np.asarray(mm)
+    if mm.dtype.kind == "i" and mm.ndim in (1, 2) and mm.size:  # the decoder's output: the compiled loop
+        return metres(mm.astype(np.int64, copy=False).reshape(mm.shape[0], -1), dmin, dmax).reshape(mm.shape)
     r = mm.astype(np.float64) * 1e-3
     r[mm < dmin] = np.nan
     r[(mm == 1) | (mm > dmax)] = np.inf

@@ -62,3 +62,20 @@ def decode_multi(a: np.ndarray, width: int, nval: int,
             else:
                 inten[step, echo] = x
     return True, val, inten
+
+
+@numba.njit(cache=True, nogil=True)
+def metres(mm: np.ndarray, dmin: int, dmax: int) -> np.ndarray:
+    """Millimetres (steps, k) int64 -> metres (steps, k) float64, as :func:`drivers.hokuyo.scip.distances_to_metres`:
+    +inf for code 1 and above ``dmax``, NaN for the other values below ``dmin``."""
+    out = np.empty(mm.shape, np.float64)
+    for i in range(mm.shape[0]):
+        for j in range(mm.shape[1]):
+            v = mm[i, j]
+            if v == 1 or v > dmax:
+                out[i, j] = np.inf
+            elif v < dmin:
+                out[i, j] = np.nan
+            else:
+                out[i, j] = np.float64(v) * 1e-3
+    return out

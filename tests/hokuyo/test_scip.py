@@ -196,6 +196,18 @@ def test_error_codes_map_to_nan_and_inf():
     assert r[5] == pytest.approx(0.023) and r[6] == pytest.approx(1.234) and r[7] == pytest.approx(60.0)
 
 
+def test_compiled_conversion_equals_the_numpy_one_to_the_bit():
+    """Integer millimetres go through the compiled loop (drivers/hokuyo/scip_jit.py); floats through numpy."""
+    rng = np.random.default_rng(5)
+    mm = rng.integers(-1, 70000, (1081, 3)).astype(np.int32)
+    mm[rng.random(mm.shape) < 0.05] = 1
+    for a in (mm[:, 0], mm[:, 1:], mm, np.zeros((0, 2), np.int32)):
+        got = distances_to_metres(a, 23, 60000)
+        want = distances_to_metres(a.astype(np.float64), 23, 60000)
+        assert got.shape == a.shape and got.dtype == np.float64
+        np.testing.assert_array_equal(got, want)
+
+
 def test_time_reply_and_plain_replies():
     ts = encode_values(np.array([16000000]), 4)
     out = feed_all(b"TM1\n00P\n" + data_lines(ts) + b"\n" + b"BM\n02R\n\n" + b"QT\n00P\n\n")

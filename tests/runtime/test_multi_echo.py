@@ -86,3 +86,40 @@ def test_single_echo_scans_fall_back_to_the_baseline_with_one_log_line(caplog):
     lines = [r for r in caplog.records if "single-echo" in r.getMessage()]
     assert len(lines) == 1 and "baseline" in lines[0].getMessage()
     assert mapper.classifier_for(sims[0].to_scan()) is mapper.classifier
+
+
+def _numpy_last_echo(scan):
+    """``runtime.messages.last_echo`` before its compiled loop (issue 19e)."""
+    r = scan.ranges
+    e = np.asarray(scan.echoes, dtype=np.float64).reshape(r.shape[0], -1)
+    ei = (np.zeros_like(e) if scan.echo_intensities is None
+          else np.asarray(scan.echo_intensities, dtype=np.float64).reshape(r.shape[0], -1))
+    with np.errstate(invalid="ignore"):
+        fin = np.isfinite(e) & np.isfinite(r)[:, None] & (np.abs(e - r[:, None]) > 1e-6)
+    has = fin.any(axis=1)
+    col = e.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
+    rows = np.arange(r.shape[0])
+    return np.where(has, e[rows, col], np.nan), np.where(has, np.nan_to_num(ei[rows, col], nan=0.0), 0.0)
+
+
+def test_last_echo_equals_the_numpy_selection_to_the_bit():
+    """Echoes equal to the first one, NaN / inf ranges and intensities, one to three columns, no intensities."""
+    rng = np.random.default_rng(2)
+    for k in (1, 2, 3):
+        scan = make_scan(0.0)
+        n = scan.ranges.shape[0]
+        scan.ranges[rng.random(n) < 0.05] = np.nan
+        scan.ranges[rng.random(n) < 0.05] = np.inf
+        e = scan.ranges[:, None] + rng.uniform(0.0, 3.0, (n, k))
+        e[rng.random((n, k)) < 0.3] = np.nan
+        e[rng.random((n, k)) < 0.05] = np.inf
+        same = rng.random((n, k)) < 0.1  # an echo at the first one's range is not a further echo
+        e[same] = np.broadcast_to(scan.ranges[:, None], (n, k))[same]
+        ei = rng.uniform(0, 5000, (n, k))
+        ei[rng.random((n, k)) < 0.1] = np.nan
+        ei[rng.random((n, k)) < 0.05] = np.inf
+        ei[rng.random((n, k)) < 0.05] = -np.inf
+        for scan.echoes, scan.echo_intensities in ((e, ei), (e[:, ::-1], None)):
+            got, want = M.last_echo(scan), _numpy_last_echo(scan)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
