@@ -30,11 +30,15 @@ def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, w: int, fx: np.floa
     guard = protect.shape[0] > 0
     for b in range(counts.shape[0]):
         cx, cy = dx[b], dy[b]
+        last = -1
         for i in range(counts[b]):
             t = np.float32(i) * step
             ix = np.int64(np.floor(fx + cx * t))
             iy = np.int64(np.floor(fy + cy * t))
             cell = iy * w + ix
+            if cell == last:  # most samples fall in the cell of the one before: done already
+                continue
+            last = cell
             if cell < 0 or cell >= size or seen[cell] == 1 or (guard and protect[cell]):
                 continue
             seen[cell] = 1
