@@ -6,7 +6,10 @@ inflate it, so the figures hold on a shared machine) and their calls. Stages nes
 indented under their parent); each figure is inclusive of the stages below it. The wrappers cost ~1 us a
 call, so the processing thread's total is a little higher than in a plain replay. The CPU time of the whole
 process from the first scan to the last (reading and decoding in the replay's reader thread included),
-per scan, gives the replay's rate on one core (issue 19's target: 400 scans/s from the raw bytes).
+per scan, gives the replay's rate on one core (issue 19's target: 400 scans/s from the raw bytes); it is
+split into the processing thread (the stages and the replay loop), the replay's reader thread (reading
+and decoding the recording; its CPU time from /proc/self/task/<tid>/schedstat, Linux) and the rest (other
+threads: the likelihood-field worker).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -44,8 +48,13 @@ class StageTimes:
     calls: dict[str, int] = field(default_factory=dict)
     scans: int = 0
     process_cpu: float = 0.0  # all threads of this process from the first scan to the last (reading, decoding, ...)
+    processing_cpu: float = 0.0  # the processing thread over the same span (stages and the replay loop)
+    reader_cpu: float = 0.0  # the replay's reader thread over the same span (reading, decoding)
     wall: float = 0.0
     span: list[float] = field(default_factory=list)  # process CPU time at the first scan's start, the last one's end
+    thread_span: list[float] = field(default_factory=list)  # the same, CPU time of the processing thread
+    reader_span: list[float | None] = field(default_factory=list)  # the same, of the reader thread (or None)
+    reader_tid: int | None = None  # native id of the replay's reader thread
 
     def table(self) -> str:
         """Markdown table: stage, calls, mean CPU ms per scan, share of the whole scan."""
@@ -59,6 +68,11 @@ class StageTimes:
             rows.append(f"| {indent}{label} | {self.calls.get(label, 0)} | {1e3 * t / n:.3f} | {share} |")
         rows.append(f"| all threads of the process from the first scan to the last (reading, decoding, processing) | | "
                     f"{1e3 * self.process_cpu / n:.3f} | |")
+        rest = self.process_cpu - self.processing_cpu - self.reader_cpu
+        for label, t in (("processing thread (the stages above, the replay loop)", self.processing_cpu),
+                         ("reader thread: reading and decoding the recording", self.reader_cpu),
+                         ("other threads (likelihood-field worker, ...)", rest)):
+            rows.append(f"| {'&nbsp;' * 4}{label} | | {1e3 * t / n:.3f} | |")
         if self.process_cpu > 0:
             rows.append(f"| the same as a rate: scans per second on one core | | {n / self.process_cpu:.0f} | |")
         return "\n".join(rows)
@@ -105,26 +119,54 @@ def _timed(fn, label: str, times: StageTimes, scan: list[int]):
             scan[0] += 1
             if not times.span:
                 times.span[:] = [time.process_time()] * 2
+                times.thread_span[:] = [time.thread_time()] * 2
+                times.reader_span[:] = [_thread_cpu(times.reader_tid)] * 2
         t = time.thread_time()
         try:
             return fn(*args, **kwargs)
         finally:
-            times.cpu[label] += time.thread_time() - t
+            t1 = time.thread_time()
+            times.cpu[label] += t1 - t
             times.calls[label] += 1
             depth[0] -= 1
             if top:
                 scan[0] -= 1
                 times.span[1] = time.process_time()
+                times.thread_span[1] = t1
     return wrapper
+
+
+def _thread_cpu(tid: int | None) -> float | None:
+    """CPU seconds of thread ``tid`` (native id) of this process so far; None if unknown or ended."""
+    try:
+        with open(f"/proc/self/task/{tid}/schedstat") as f:
+            return int(f.read().split()[0]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def stage_profile(recording: str, source: str = "messages") -> StageTimes:
     """Replay ``recording`` (all its scans, as fast as possible) with the stages timed."""
-    from runtime.replay import replay_file
+    from runtime import replay
 
     times = StageTimes()
-    with timed_stages(times):
-        r = replay_file(recording, source=source, as_recorded=False, progress=False)
+    source_items = replay.iter_source
+
+    def timed_source(*args, **kwargs):  # runs in the replay's reader thread
+        times.reader_tid = threading.get_native_id()
+        yield from source_items(*args, **kwargs)
+        if times.reader_span:
+            times.reader_span[1] = _thread_cpu(times.reader_tid)
+
+    replay.iter_source = timed_source
+    try:
+        with timed_stages(times):
+            r = replay.replay_file(recording, source=source, as_recorded=False, progress=False)
+    finally:
+        replay.iter_source = source_items
     times.process_cpu = times.span[1] - times.span[0] if times.span else 0.0
+    times.processing_cpu = times.thread_span[1] - times.thread_span[0] if times.thread_span else 0.0
+    start, end = times.reader_span or (None, None)
+    times.reader_cpu = max(end - start, 0.0) if start is not None and end is not None else 0.0
     times.scans, times.wall = r.scans, r.wall_time
     return times
