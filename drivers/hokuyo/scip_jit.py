@@ -33,7 +33,9 @@ def decode_multi(a: np.ndarray, width: int, nval: int,
         else:
             if a[i] - 0x30 > 0x3F or a[i] < 0x30:
                 return False, bad, bad
-            pos = (pos + 1) % rec
+            pos += 1
+            if pos == rec:  # (pos + 1) % rec without the division
+                pos = 0
     nchars = a.size - n_amp
     if pos != 0 or nchars == 0:
         return False, bad, bad
