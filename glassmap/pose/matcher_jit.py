@@ -71,17 +71,17 @@ def scaled_squared_distances(vx: np.ndarray, vy: np.ndarray, px: np.ndarray, py:
             c10[j] = ax * (one - ay)
             c01[j] = (one - ax) * ay
             c11[j] = ax * ay
-        for t in range(t_n):
-            o = off[t]
-            for j in range(n):
-                b = base[j] + o
-                sx = zero + vx[b] * c00[j]
-                sy = zero + vy[b] * c00[j]
-                sx = sx + vx[b + 1] * c10[j]
-                sy = sy + vy[b + 1] * c10[j]
-                sx = sx + vx[b + w] * c01[j]
-                sy = sy + vy[b + w] * c01[j]
-                sx = sx + vx[b + w + 1] * c11[j]
-                sy = sy + vy[b + w + 1] * c11[j]
+        for j in range(n):  # one point at a time: its translations read neighbouring cells
+            a00, a10, a01, a11 = c00[j], c10[j], c01[j], c11[j]
+            for t in range(t_n):
+                b = base[j] + off[t]
+                sx = zero + vx[b] * a00
+                sy = zero + vy[b] * a00
+                sx = sx + vx[b + 1] * a10
+                sy = sy + vy[b + 1] * a10
+                sx = sx + vx[b + w] * a01
+                sy = sy + vy[b + w] * a01
+                sx = sx + vx[b + w + 1] * a11
+                sy = sy + vy[b + w + 1] * a11
                 out[k, t, j] = (sx * sx + sy * sy) * scale
     return out
