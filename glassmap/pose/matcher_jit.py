@@ -50,31 +50,20 @@ def scaled_squared_distances(vx: np.ndarray, vy: np.ndarray, px: np.ndarray, py:
     (1, 0), (0, 1), (1, 1)); points off the crop are clamped into its border."""
     k_n, t_n, n = c.shape[0], off.shape[0], px.shape[0]
     out = np.empty((k_n, t_n, n), np.float32)
-    base = np.empty(n, np.int64)
-    c00 = np.empty(n, np.float32)
-    c10 = np.empty(n, np.float32)
-    c01 = np.empty(n, np.float32)
-    c11 = np.empty(n, np.float32)
     one = np.float32(1.0)
     zero = np.float32(0.0)
     for k in range(k_n):
         kx, ky = (k if ox.shape[0] > 1 else 0), (k if oy.shape[0] > 1 else 0)
-        for j in range(n):
+        for j in range(n):  # one point at a time: its translations read neighbouring cells
             gx = (c[k] * px[j] - s[k] * py[j] + ox[kx]) / res - 0.5
             gy = (s[k] * px[j] + c[k] * py[j] + oy[ky]) / res - 0.5
             x0, y0 = np.floor(gx), np.floor(gy)
             ax, ay = np.float32(gx - x0), np.float32(gy - y0)
             ix = min(max(np.int64(x0), margin), w - 2 - margin)
             iy = min(max(np.int64(y0), margin), h - 2 - margin)
-            base[j] = iy * w + ix
-            c00[j] = (one - ax) * (one - ay)
-            c10[j] = ax * (one - ay)
-            c01[j] = (one - ax) * ay
-            c11[j] = ax * ay
-        for j in range(n):  # one point at a time: its translations read neighbouring cells
-            a00, a10, a01, a11 = c00[j], c10[j], c01[j], c11[j]
+            a00, a10, a01, a11 = (one - ax) * (one - ay), ax * (one - ay), (one - ax) * ay, ax * ay
             for t in range(t_n):
-                b = base[j] + off[t]
+                b = iy * w + ix + off[t]
                 sx = zero + vx[b] * a00
                 sy = zero + vy[b] * a00
                 sx = sx + vx[b + 1] * a10

@@ -9,12 +9,16 @@ from tests.pose.synth import make_scan, room_with_corner
 
 
 def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None) -> int:
-    """``OccupancyGrid.integrate`` before the kernel (issue 19e)."""
+    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e)."""
     pose, angles, ranges, hit, clear, free_len, c, s = occ._scan_geometry(laser_pose, angles, ranges, range_max)
     if not clear.any():
         return 0
     p = occ.params
-    ends = occ._grow_for(pose, ranges, hit, clear, free_len, c, s)
+    u = np.stack([c, s], axis=1)
+    ends = pose[:2] + u * np.where(hit, ranges, 0.0)[:, None]
+    reach = pose[:2] + u * free_len[:, None]
+    pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
+    occ.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
     g = occ.grid
     w = g.shape[1]
     if callable(protect):
