@@ -29,7 +29,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
-from glassmap.pose.field import FACE_LAYERS, FieldParams, LikelihoodField, accumulate_hits, end_point_normals
+from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
@@ -49,7 +49,7 @@ MAP_SRC_LAYERS = ("pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift")
 # the systematic error (m, map frame x and y) of the cell's best placement: matches biased the same way in a
 # chain of placements add up (see EstimatorConfig.map_bias_per_match)
 MAP_SYS_LAYERS = ("pose_sys_x", "pose_sys_y")
-HIT_LAYERS = tuple(f"pose_hit_{k}" for k in FACE_LAYERS)  # end points per cell, by face (field.FACE_LAYERS)
+HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 
 
 @dataclass(frozen=True)
@@ -503,23 +503,21 @@ class PoseEstimator:
         return float(np.isin(keys, prev).mean())
 
     def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
-        """Accumulate this scan's end points per cell (offset from the cell corner, m), with the normal of the
-        surface each lies on (from its neighbouring beams), by face, for sub-cell walls."""
+        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
         if not hit.any():
             return
         g = self.occupancy.grid
         lp = self.laser_pose_of(self.scan_pose())
-        c, s = np.cos(lp[2]), np.sin(lp[2])
-        nrm = end_point_normals(angles, ranges, hit)[hit] @ np.array([[c, s], [-s, c]])  # map frame
         a = lp[2] + angles[hit]
         xy = lp[:2] + np.stack([ranges[hit] * np.cos(a), ranges[hit] * np.sin(a)], axis=1)
         cells = g.world_to_cell(xy)
         ok = g.in_bounds(cells)
-        cells, xy, nrm = cells[ok], xy[ok], nrm[ok]
+        cells, xy = cells[ok], xy[ok]
         off = xy - (g.origin + cells * g.resolution)
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        accumulate_hits(tuple(g[name].reshape(-1) for name in HIT_LAYERS), flat, off, nrm)
+        for name, vals in zip(HIT_LAYERS, (off[:, 0], off[:, 1], np.ones(len(flat)))):
+            np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
 
     # ------------------------------------------------------------------ map uncertainty
     def matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:

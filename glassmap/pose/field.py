@@ -22,81 +22,6 @@ from glassmap.grid import OccupancyGrid
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
-# Per-cell end-point layers with faces (:func:`accumulate_hits`; offsets in metres from the cell's corner): the
-# sums over all end points in the cell (x offset, y offset, count, unit normal x, unit normal y), then the same
-# five sums over those of the cell's first face; the second face is the difference.
-FACE_LAYERS = ("sx", "sy", "n", "nx", "ny", "a_sx", "a_sy", "a_n", "a_nx", "a_ny")
-
-
-def end_point_normals(angles: np.ndarray, ranges: np.ndarray, valid: np.ndarray, support: float = 0.1,
-                      max_beams: int = 10, gap: float = 0.2) -> np.ndarray:
-    """Unit normals (n, 2) (laser frame, pointing back towards the sensor) of the surface at each beam's end
-    point, from a line fitted to the end points of the beams i - k..i or i..i + k (k beams spanning about
-    ``support`` m at that range, 2..max_beams), whichever side is straighter: a point at a corner gets the
-    normal of one of its faces, not a blend of both. A side stops before an invalid beam or a gap above
-    ``gap`` m between consecutive end points (at least 3 points); without a usable side the normal points
-    back along the beam.
-    angles (rad), ranges (m), valid (bool) of shape (n,)."""
-    n = ranges.size
-    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    if n < 3:
-        return -u
-    r = np.where(valid, ranges, 0.0)
-    x, y = r * u[:, 0], r * u[:, 1]
-    dth = max(float(np.median(np.abs(np.diff(angles)))), 1e-6)
-    k = np.clip(np.ceil(support / np.maximum(r * dth, 1e-6)), 2, max_beams).astype(np.int64)
-    gaps = np.concatenate([[False], np.hypot(np.diff(x), np.diff(y)) > gap])
-    # runs of valid beams without a gap: a window stays inside its beam's run
-    i = np.arange(n)
-    cut = gaps | ~valid | np.concatenate([[False], ~valid[:-1]])
-    start = np.maximum.accumulate(np.where(cut, i, 0))
-    end = (n - 1 - np.maximum.accumulate(np.where(np.concatenate([cut[1:], [True]]), n - 1 - i, 0)[::-1])[::-1])
-
-    def csum(a):
-        return np.concatenate([[0.0], np.cumsum(a, dtype=np.float64)])
-
-    cx, cy, cxx, cxy, cyy = (csum(a) for a in (x, y, x * x, x * y, y * y))
-    fits = []
-    for lo, hi in ((np.maximum(i - k, start), i), (i, np.minimum(i + k, end))):
-        ok = valid & (hi - lo >= 2)
-        m = (hi - lo + 1).astype(np.float64)
-        mx, my = (cx[hi + 1] - cx[lo]) / m, (cy[hi + 1] - cy[lo]) / m
-        sxx = (cxx[hi + 1] - cxx[lo]) / m - mx * mx
-        syy = (cyy[hi + 1] - cyy[lo]) / m - my * my
-        sxy = (cxy[hi + 1] - cxy[lo]) / m - mx * my
-        theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the line
-        lmin = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy)
-        fits.append((ok, lmin, np.stack([-np.sin(theta), np.cos(theta)], axis=1)))
-    (ok_l, e_l, n_l), (ok_r, e_r, n_r) = fits
-    left = ok_l & (~ok_r | (e_l <= e_r))
-    nrm = np.where(left[:, None], n_l, n_r)
-    nrm = np.where((ok_l | ok_r)[:, None], nrm, -u)
-    return np.where((np.sum(nrm * u, axis=1) > 0)[:, None], -nrm, nrm)
-
-
-def accumulate_hits(layers: tuple[np.ndarray, ...], flat: np.ndarray, off: np.ndarray, normals: np.ndarray,
-                    face_cos: float = 0.5) -> None:
-    """Add end points to the per-cell :data:`FACE_LAYERS` (flat float arrays, changed in place): flat (n,) cell
-    indices, off (n, 2) offsets (m) from the cell's corner, normals (n, 2) unit normals (map frame, e.g.
-    :func:`end_point_normals` rotated). A point joins the cell's first face when its normal agrees better with
-    that face's mean normal than with the second's (or, while the cell has one face, when their cosine is at
-    least ``face_cos``); a cell without points takes its first face from the first of them here. So the two
-    faces of a convex corner, or the two sides of a thin wall, stay apart within a cell."""
-    def unit(ax, ay):
-        m = np.hypot(ax, ay)
-        m = np.where(m > 0, m, 1.0)
-        return np.stack([ax / m, ay / m], axis=1)
-
-    n, nx, ny, an, anx, any_ = (layers[j][flat].astype(np.float64) for j in (2, 3, 4, 7, 8, 9))
-    _, first, inv = np.unique(flat, return_index=True, return_inverse=True)
-    ref = np.where((an > 0)[:, None], unit(anx, any_), normals[first][inv.reshape(-1)])
-    ca = np.sum(normals * ref, axis=1)
-    cb = np.sum(normals * unit(nx - anx, ny - any_), axis=1)
-    to_a = np.where(n - an > 0, ca >= cb, ca >= face_cos)
-    vals = (off[:, 0], off[:, 1], np.ones(flat.size), normals[:, 0], normals[:, 1])
-    for j, v in enumerate(vals):
-        np.add.at(layers[j], flat, v.astype(layers[j].dtype))
-        np.add.at(layers[5 + j], flat[to_a], v[to_a].astype(layers[j].dtype))
 
 
 @dataclass(frozen=True)
@@ -112,8 +37,7 @@ class FieldParams:
     line_normals: where the neighbourhood's end points form a straight wall (smaller / larger scatter
     eigenvalue below line_ratio), measure the distance along the wall's normal only (see
     :meth:`LikelihoodField._pooled`); sigma_hit (m): standard deviation of the Gaussian of the distance to the
-    nearest wall point; face_cos: with face layers (see :data:`FACE_LAYERS`), end points of two cells belong
-    to the same face when the cosine between their faces' mean normals is at least this."""
+    nearest wall point."""
 
     sigma_hit: float = 0.03
     p_floor: float = 0.05
@@ -125,7 +49,6 @@ class FieldParams:
     vectors: bool = True
     line_normals: bool = True
     line_ratio: float = 0.25
-    face_cos: float = 0.8
 
 
 @dataclass(frozen=True)
@@ -248,10 +171,17 @@ class LikelihoodField:
             # the wall point and normal are needed only at the occupied cells some near cell is closest to
             u, inv = np.unique(ny.astype(np.int64) * occ.shape[1] + nx, return_inverse=True)
             uy, ux = np.divmod(u, occ.shape[1])
-            if len(points) == len(FACE_LAYERS) and p.line_normals:
-                ex, ey = self._face_vectors(points, res, uy, ux, inv.reshape(-1), ddx, ddy)
-            else:
-                ex, ey = self._wall_vectors(points, res, pool, uy, ux, inv.reshape(-1), ddx, ddy)
+            sx, sy, c, nrm = self._pooled(points, res, pool, uy, ux)
+            has = c > 0
+            cs = np.where(has, c, 1)
+            mx = np.where(has, sx / cs, 0.5 * res)[inv]  # mean offset in the cell (m)
+            my = np.where(has, sy / cs, 0.5 * res)[inv]
+            ex, ey = (ddx - 0.5) * res + mx, (ddy - 0.5) * res + my  # cell centre -> wall point (m)
+            if nrm is not None:  # straight wall there: distance along its normal only
+                nx_, ny_ = nrm[0][inv], nrm[1][inv]
+                line = (has & nrm[2])[inv]
+                dot = ex * nx_ + ey * ny_
+                ex, ey = np.where(line, dot * nx_, ex), np.where(line, dot * ny_, ey)
             d = np.hypot(ex, ey)
             inner[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
             if vx is not None:
@@ -261,99 +191,6 @@ class LikelihoodField:
         coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
         return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied,
                            None if vx is None else vx.ravel(), None if vy is None else vy.ravel())
-
-    def _wall_vectors(self, points: tuple[np.ndarray, ...], res: float, pool: int, uy: np.ndarray, ux: np.ndarray,
-                      inv: np.ndarray, ddx: np.ndarray, ddy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Vectors (m) from the near cells' centres to the wall of their nearest occupied cell (uy, ux)[inv],
-        ddx / ddy cells away, from (sum x, sum y, count) layers without faces (see :meth:`_pooled`)."""
-        sx, sy, c, nrm = self._pooled(points[:3], res, pool, uy, ux)
-        has = c > 0
-        cs = np.where(has, c, 1)
-        mx = np.where(has, sx / cs, 0.5 * res)[inv]  # mean offset in the cell (m)
-        my = np.where(has, sy / cs, 0.5 * res)[inv]
-        ex, ey = (ddx - 0.5) * res + mx, (ddy - 0.5) * res + my  # cell centre -> wall point (m)
-        if nrm is not None:  # straight wall there: distance along its normal only
-            nx_, ny_ = nrm[0][inv], nrm[1][inv]
-            line = (has & nrm[2])[inv]
-            dot = ex * nx_ + ey * ny_
-            ex, ey = np.where(line, dot * nx_, ex), np.where(line, dot * ny_, ey)
-        return ex, ey
-
-    def _face_vectors(self, points: tuple[np.ndarray, ...], res: float, uy: np.ndarray, ux: np.ndarray,
-                      inv: np.ndarray, ddx: np.ndarray, ddy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """As :meth:`_wall_vectors` from :data:`FACE_LAYERS`, one wall per face: each face of the occupied cell
-        (uy, ux) is built from the end points of the faces around it whose mean normal agrees with its own
-        (cosine >= ``face_cos``): its wall point the mean of those in the 3 x 3 cells, its line the scatter of
-        those in the 5 x 5 cells. A near cell's vector goes to the nearest face of its occupied cell that it
-        lies in front of (or, behind all, the one it is least deep behind: the solid of a convex corner is
-        the intersection of its faces' half-planes). Near a convex corner the end points of the other face no longer chamfer the wall into the
-        solid (see docs/pose.md, "A likelihood field exact at convex corners")."""
-        prm = self.params
-        h, w = points[2].shape
-        d = np.arange(-2, 3)
-        dy, dx = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))
-        yy, xx = uy[:, None] + dy[None, :], ux[:, None] + dx[None, :]  # (U, 25) neighbours
-        inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
-        yy, xx = np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)
-
-        def read(j):
-            return np.where(inside, points[j][yy, xx], 0).astype(np.float64)
-
-        tot, fa = [read(j) for j in range(5)], [read(5 + j) for j in range(5)]
-        # (U, 2 faces, 25): count, offset sums from the requested cell's corner (m), normal sums
-        c = np.stack([fa[2], tot[2] - fa[2]], axis=1)
-        ax = np.stack([fa[0], tot[0] - fa[0]], axis=1) + c * (dx * res)
-        ay = np.stack([fa[1], tot[1] - fa[1]], axis=1) + c * (dy * res)
-        gx, gy = np.stack([fa[3], tot[3] - fa[3]], axis=1), np.stack([fa[4], tot[4] - fa[4]], axis=1)
-        gn = np.hypot(gx, gy)
-        gn = np.where(gn > 0, gn, 1.0)
-        gx, gy = gx / gn, gy / gn
-        centre = dy.size // 2
-        m3 = (np.abs(dy) <= 1) & (np.abs(dx) <= 1)
-        cs = np.where(c > 0, c, 1.0)
-        best_key = np.full(inv.size, np.inf)
-        out_x = (ddx * res).astype(np.float64)  # fallback: the occupied cell's centre
-        out_y = (ddy * res).astype(np.float64)
-        for f in range(2):
-            own = c[:, f, centre] > 0
-            agree = (c > 0) & (gx * gx[:, f, centre, None, None] + gy * gy[:, f, centre, None, None]
-                               >= prm.face_cos)
-            agree[:, f, centre] = own
-            a3 = agree & m3
-            n3 = np.sum(c * a3, axis=(1, 2))
-            n3s = np.where(n3 > 0, n3, 1.0)
-            px, py = np.sum(ax * a3, axis=(1, 2)) / n3s, np.sum(ay * a3, axis=(1, 2)) / n3s
-            n5 = np.sum(c * agree, axis=(1, 2))
-            ns = np.where(n5 > 0, n5, 1.0)
-            mx, my = np.sum(ax * agree, axis=(1, 2)) / ns, np.sum(ay * agree, axis=(1, 2)) / ns
-            cxx = np.sum(ax * ax / cs * agree, axis=(1, 2)) / ns - mx * mx
-            cyy = np.sum(ay * ay / cs * agree, axis=(1, 2)) / ns - my * my
-            cxy = np.sum(ax * ay / cs * agree, axis=(1, 2)) / ns - mx * my
-            half_tr, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
-            rad = np.sqrt(diff * diff + cxy * cxy)
-            lmax, lmin = half_tr + rad, half_tr - rad
-            theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the wall
-            line = (n5 >= 3) & (lmax > (0.5 * res) ** 2) & (lmin < prm.line_ratio * lmax)
-            tx, ty = np.cos(theta), np.sin(theta)
-            # the face's outward normal (towards where its end points were seen from): the scans' mean normal,
-            # and the line's normal turned to agree with it
-            ox, oy = np.sum(gx * gn * agree, axis=(1, 2)), np.sum(gy * gn * agree, axis=(1, 2))
-            flip = np.where(-ty * ox + tx * oy < 0, -1.0, 1.0)
-            nx_, ny_ = (-ty * flip)[inv], (tx * flip)[inv]
-            # per near cell: vector to the face's wall point, along the normal where the face is a line (a line
-            # is not cut where its end points end: an end may just be where the wall was not seen yet)
-            ex, ey = (ddx - 0.5) * res + px[inv], (ddy - 0.5) * res + py[inv]
-            dot = ex * nx_ + ey * ny_
-            ln = line[inv]
-            vx, vy = np.where(ln, dot * nx_, ex), np.where(ln, dot * ny_, ey)
-            front = np.where(ln, -dot, np.where(ex * ox[inv] + ey * oy[inv] <= 0, 1.0, -1.0) * np.hypot(ex, ey))
-            # the nearest face the cell lies in front of; behind all of them (inside the solid of a convex
-            # corner), the one it is least deep behind
-            key = np.where(front >= 0, front, 1e3 - front)
-            take = own[inv] & (key < best_key)
-            best_key = np.where(take, key, best_key)
-            out_x, out_y = np.where(take, vx, out_x), np.where(take, vy, out_y)
-        return out_x, out_y
 
     def _pooled(self, points: tuple[np.ndarray, np.ndarray, np.ndarray], res: float, k: int, cy: np.ndarray,
                 cx: np.ndarray
