@@ -23,12 +23,13 @@ from dataclasses import replace
 import numpy as np
 
 from glassmap.pose.estimator import HIT_LAYERS, EstimatorConfig, PoseEstimator
-from glassmap.pose.matcher import select_points
+from glassmap.pose.matcher import constrained_directions, select_points
 from glassmap.sim.dataset import simulate_run
 from glassmap.sim.laser import world_laser_params
 from glassmap.sim.world import load_world
 
 OFFSETS = np.linspace(-0.05, 0.05, 11)  # m along the beam around the true end point (field profile)
+DENSE = np.arange(-0.01, 0.01001, 0.00025)  # m along the track around the true pose (where the score peaks)
 
 
 def _args() -> argparse.Namespace:
@@ -42,6 +43,7 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--match-true-ranges", action="store_true", help="match the noise-free ranges")
     ap.add_argument("--full-map", action="store_true", help="build the whole run's map first, then match")
     ap.add_argument("--field", default="", help="FieldParams overrides, e.g. line_normals=0,pool=2")
+    ap.add_argument("--refresh", type=int, default=0, help="rebuild the field every N key scans (0: the estimator's)")
     ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
     return ap.parse_args()
 
@@ -63,6 +65,8 @@ def main() -> int:
     run = simulate_run(world, args.route, seed=args.seed, laser_params=laser)
     cfg = _field_params(EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]),
                                         background_field=False), args.field)
+    if args.refresh:
+        cfg = replace(cfg, field_refresh_scans=args.refresh)
     est = PoseEstimator(cfg)
     g = est.occupancy.grid
 
@@ -76,7 +80,8 @@ def main() -> int:
             keys.append(i)
             last = run.scan_true_poses[i, :2]
     passes = [(False, True), (True, False)] if args.full_map else [(True, True)]
-    errs, grad, prof, since = [], {}, [], 0
+    errs, grad, prof, since, peaks, para, errs_refined = [], {}, [], 0, [], [], []
+    exact_err: dict[tuple, list] = {}  # per 10 cm bin: sum of the field's along-track vector at exact end points, count
     for do_match, do_map in passes:
         if do_match and not do_map:
             rebuild(run.scan_true_poses[n // 2, :2])
@@ -94,8 +99,20 @@ def main() -> int:
                 if res is not None:
                     d = res.pose - truth
                     errs.append((run.scan_stamps[i], c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
+                    hdir = constrained_directions(res.information, res.lever, cfg.likelihood.sigma_hit,
+                                                  cfg.constrained_points)
+                    d = est.field.refine(pts, w, res.pose, hdir, res.lever) - truth
+                    errs_refined.append((c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
                 a = lp[2] + scan.angles[idx]
                 u = np.stack([np.cos(a), np.sin(a)], axis=1)
+                # where the score itself peaks along the track (y and yaw at the truth; 0.25 mm steps)
+                pm0 = lp[:2] + ranges[idx][:, None] * u
+                sc1 = [w @ est.field.log_likelihood(pm0 + dv * np.array([c, s])) for dv in DENSE]
+                peaks.append(DENSE[int(np.argmax(sc1))])
+                # the matcher's sub-lattice estimate: the vertex of a parabola through the lattice neighbours
+                v3 = [w @ est.field.log_likelihood(pm0 + dv * np.array([c, s])) for dv in (-g.resolution, 0.0, g.resolution)]
+                den = v3[0] - 2 * v3[1] + v3[2]
+                para.append(np.clip(0.5 * (v3[0] - v3[2]) / den, -0.5, 0.5) * g.resolution if den < 0 else np.nan)
                 # the score's gradient along the track at the true pose, per end point, binned by position
                 pm = lp[:2] + ranges[idx][:, None] * u
                 step = 0.002 * np.array([c, s])
@@ -104,6 +121,15 @@ def main() -> int:
                     grad[key] = grad.get(key, 0.0) + gv
                 # the field's vector along forward beams around their true end points (no mirror images)
                 tr = np.asarray(run.true_range[i], dtype=np.float64)[idx]
+                ok = np.isfinite(tr) & ~run.is_ghost[i][idx]
+                pt = lp[:2] + tr[ok, None] * u[ok]
+                vt = est.field.wall_vectors(pt)
+                okv = np.all(np.isfinite(vt), axis=1) & (np.hypot(*vt.T) < 0.06)
+                along = vt[okv] @ np.array([c, s])
+                for key, av in zip(map(tuple, np.round(pt[okv] / 0.1).astype(int)), along):
+                    acc = exact_err.setdefault(key, [0.0, 0])
+                    acc[0] += av
+                    acc[1] += 1
                 fwd = np.isfinite(tr) & ~run.is_ghost[i][idx] & (np.cos(scan.angles[idx]) > 0.7)
                 q = (lp[:2] + tr[fwd, None] * u[fwd])[None] + OFFSETS[:, None, None] * u[fwd][None]
                 vq = est.field.wall_vectors(q.reshape(-1, 2)).reshape(len(OFFSETS), -1, 2)
@@ -125,10 +151,23 @@ def main() -> int:
         print(f"t {lo:4.1f}-{hi:4.1f} s: {m.sum():4d} matches, mean along {1000 * e[m, 1].mean():+6.2f} mm "
               f"(se {1000 * e[m, 1].std() / np.sqrt(max(m.sum(), 1)):.2f}), sideways {1000 * e[m, 2].mean():+6.2f} mm, "
               f"yaw {1000 * e[m, 3].mean():+6.3f} mrad", flush=True)
+    er = np.array(errs_refined)
+    print(f"refined by LikelihoodField.refine: mean along {1000 * er[:, 0].mean():+6.2f} mm "
+          f"(se {1000 * er[:, 0].std() / np.sqrt(len(er)):.2f}), sideways {1000 * er[:, 1].mean():+6.2f} mm, "
+          f"yaw {1000 * er[:, 2].mean():+6.3f} mrad; rms along {1000 * np.sqrt(np.mean(er[:, 0] ** 2)):.2f} mm "
+          f"(lattice match {1000 * np.sqrt(np.mean(e[:, 1] ** 2)):.2f} mm)")
+    print(f"the score's own maximum along the track (other axes at the truth): mean {1000 * np.mean(peaks):+.2f} mm "
+          f"(se {1000 * np.std(peaks) / np.sqrt(len(peaks)):.2f}); vertex of the parabola through +-1 cell "
+          f"{1000 * np.nanmean(para):+.2f} mm")
     print(f"score gradient along the track at the true poses, summed over the run: {sum(grad.values()):+.0f} per m; "
           "largest 10 cm bins of end points:")
     for (bx, by), gv in sorted(grad.items(), key=lambda kv: -abs(kv[1]))[:12]:
         print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {gv:+8.0f}")
+    tot = sum(v[0] for v in exact_err.values()) / max(sum(v[1] for v in exact_err.values()), 1)
+    print(f"field vector along the track at the exact end points (true pose, true range; 0 for an exact field): "
+          f"mean {1000 * tot:+.2f} mm; largest 10 cm bins (sum, mm; mean):")
+    for (bx, by), (sv, cv) in sorted(exact_err.items(), key=lambda kv: -abs(kv[1][0]))[:10]:
+        print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {1000 * sv:+8.1f} mm over {cv} points, mean {1000 * sv / cv:+.2f} mm")
     pr = np.concatenate(prof, axis=1)
     print("field vector along forward beams (mm; positive: the wall lies further along the beam) "
           "at the true end point + s:")

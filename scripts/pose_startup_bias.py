@@ -2,7 +2,8 @@
 and the estimator: where the start-up bias comes from (docs/pose.md, "Start-up bias").
 
 Usage: .venv/bin/python scripts/pose_startup_bias.py WORLD [--seconds 20] [--seed 0]
-           [--variants default,perfect-odometry,no-mirror,no-range-noise,every-scan,sigma-hit-5cm]
+           [--variants default,perfect-odometry,no-mirror,no-range-noise,every-scan,sigma-hit-5cm,
+                       field-every-1,field-every-2,field-every-10]
 
 Prints, per variant, the mean along-track error (estimate minus truth, m -> cm, positive = ahead) over the
 second half of the window and at its end. Use validation worlds (seeds 1000-1999), never test worlds.
@@ -23,7 +24,8 @@ from glassmap.sim.laser import world_laser_params
 from glassmap.sim.robot import OdometryNoise
 from glassmap.sim.world import load_world
 
-VARIANTS = ("default", "perfect-odometry", "no-mirror", "no-range-noise", "every-scan", "sigma-hit-5cm")
+VARIANTS = ("default", "perfect-odometry", "no-mirror", "no-range-noise", "every-scan", "sigma-hit-5cm",
+            "field-every-1", "field-every-2", "field-every-10")
 
 
 def _first(run, seconds: float):
@@ -48,7 +50,10 @@ def main() -> int:
            "no-range-noise": dict(laser_params=replace(laser, range_noise=0.0, range_noise_slope=0.0))}
     base = EstimatorConfig()
     est = {"every-scan": replace(base, keyframe_distance=0.0, keyframe_angle=0.0),
-           "sigma-hit-5cm": replace(base, likelihood=replace(base.likelihood, sigma_hit=0.05))}
+           "sigma-hit-5cm": replace(base, likelihood=replace(base.likelihood, sigma_hit=0.05)),
+           "field-every-1": replace(base, field_refresh_scans=1),
+           "field-every-2": replace(base, field_refresh_scans=2),
+           "field-every-10": replace(base, field_refresh_scans=10)}
     runs: dict[str, object] = {}
     for name in args.variants.split(","):
         if name not in VARIANTS:
