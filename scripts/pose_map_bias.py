@@ -3,15 +3,19 @@
 The estimator's map (occupancy, sub-cell end points) is built from a simulated run's key scans (every 5 cm)
 at their true laser poses; each key scan is matched, with the truth as prior, against the map of the key
 scans before it (or, with --full-map, against the map of the whole run), then integrated. Prints the mean
-match error in the robot frame (along the track, positive = ahead; sideways, positive = left; yaw), where
-the score pushes the pose along the track at the true poses (the 10 cm bins of end points with the largest
-summed gradient: which features cause a bias), and the field's vector to the wall along forward beams
-around their true end points (a field whose walls lie behind the true surface pulls the robot forward).
-docs/pose.md, "Start-up bias", has the findings.
+match error in the robot frame (along the track, positive = ahead; sideways, positive = left; yaw); where
+the score itself peaks along the track (other axes at the truth) against the vertex of the parabola through
+the scores one cell either side (the matcher's sub-lattice estimate); where the score pushes the pose along
+the track at the true poses (the 10 cm bins of end points with the largest summed gradient: which features
+cause a bias); the field's vector along the track at the exact end points (true pose and noise-free range,
+so an exact field gives 0; the 10 cm bins with the largest sums: where the field is wrong); and the field's
+vector to the wall along forward beams around their true end points (a field whose walls lie behind the
+true surface pulls the robot forward). docs/pose.md, "Start-up bias" and "Where the forward match bias
+comes from", has the findings.
 
 Usage: .venv/bin/python scripts/pose_map_bias.py WORLD [--seconds 20] [--seed 0] [--route short]
            [--no-range-noise] [--map-true-ranges] [--match-true-ranges] [--full-map]
-           [--field line_normals=0,pool=2] [--dump X:Y]
+           [--field line_normals=0,pool=2] [--refresh N] [--dump X:Y]
 Use validation worlds (seeds 1000-1999), built-in ones or tests/pose/data/*.toml, never test worlds.
 """
 
@@ -23,7 +27,7 @@ from dataclasses import replace
 import numpy as np
 
 from glassmap.pose.estimator import HIT_LAYERS, EstimatorConfig, PoseEstimator
-from glassmap.pose.matcher import constrained_directions, select_points
+from glassmap.pose.matcher import select_points
 from glassmap.sim.dataset import simulate_run
 from glassmap.sim.laser import world_laser_params
 from glassmap.sim.world import load_world
@@ -80,7 +84,7 @@ def main() -> int:
             keys.append(i)
             last = run.scan_true_poses[i, :2]
     passes = [(False, True), (True, False)] if args.full_map else [(True, True)]
-    errs, grad, prof, since, peaks, para, errs_refined = [], {}, [], 0, [], [], []
+    errs, grad, prof, since, peaks, para = [], {}, [], 0, [], []
     exact_err: dict[tuple, list] = {}  # per 10 cm bin: sum of the field's along-track vector at exact end points, count
     for do_match, do_map in passes:
         if do_match and not do_map:
@@ -99,10 +103,6 @@ def main() -> int:
                 if res is not None:
                     d = res.pose - truth
                     errs.append((run.scan_stamps[i], c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
-                    hdir = constrained_directions(res.information, res.lever, cfg.likelihood.sigma_hit,
-                                                  cfg.constrained_points)
-                    d = est.field.refine(pts, w, res.pose, hdir, res.lever) - truth
-                    errs_refined.append((c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
                 a = lp[2] + scan.angles[idx]
                 u = np.stack([np.cos(a), np.sin(a)], axis=1)
                 # where the score itself peaks along the track (y and yaw at the truth; 0.25 mm steps)
@@ -151,11 +151,6 @@ def main() -> int:
         print(f"t {lo:4.1f}-{hi:4.1f} s: {m.sum():4d} matches, mean along {1000 * e[m, 1].mean():+6.2f} mm "
               f"(se {1000 * e[m, 1].std() / np.sqrt(max(m.sum(), 1)):.2f}), sideways {1000 * e[m, 2].mean():+6.2f} mm, "
               f"yaw {1000 * e[m, 3].mean():+6.3f} mrad", flush=True)
-    er = np.array(errs_refined)
-    print(f"refined by LikelihoodField.refine: mean along {1000 * er[:, 0].mean():+6.2f} mm "
-          f"(se {1000 * er[:, 0].std() / np.sqrt(len(er)):.2f}), sideways {1000 * er[:, 1].mean():+6.2f} mm, "
-          f"yaw {1000 * er[:, 2].mean():+6.3f} mrad; rms along {1000 * np.sqrt(np.mean(er[:, 0] ** 2)):.2f} mm "
-          f"(lattice match {1000 * np.sqrt(np.mean(e[:, 1] ** 2)):.2f} mm)")
     print(f"the score's own maximum along the track (other axes at the truth): mean {1000 * np.mean(peaks):+.2f} mm "
           f"(se {1000 * np.std(peaks) / np.sqrt(len(peaks)):.2f}); vertex of the parabola through +-1 cell "
           f"{1000 * np.nanmean(para):+.2f} mm")

@@ -310,55 +310,6 @@ class LikelihoodField:
         out[inside] = np.stack([vx, vy], axis=1)[inside]
         return out
 
-    def score(self, pts: np.ndarray, w: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """Scores (P,) of base-frame end points ``pts`` (n, 2) with weights ``w`` (n,) at poses (P, 3) (map
-        frame): the weighted sum of :meth:`log_likelihood`, as the matcher's fine stage scores them."""
-        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        q = np.stack([poses[:, :1] + c * pts[:, 0] - s * pts[:, 1], poses[:, 1:2] + s * pts[:, 0] + c * pts[:, 1]],
-                     axis=2)  # (P, n, 2)
-        return self.log_likelihood(q.reshape(-1, 2)).reshape(len(poses), -1) @ w
-
-    def refine(self, pts: np.ndarray, w: np.ndarray, pose: np.ndarray, directions: np.ndarray,
-               lever: float, iterations: int = 4, h: float = 0.002) -> np.ndarray:
-        """The pose (x, y, yaw; map frame) near ``pose`` where :meth:`score` peaks, moved only along
-        ``directions`` (rows (k, 3) of pose space, e.g. those the match constrains: flat directions keep
-        ``pose``): Newton steps on the score's gradient and Hessian by central differences of ``h`` m (yaw:
-        h / ``lever``), at most half a cell (yaw: half a degree) per step, kept only when the score rises.
-
-        Why: the matcher's sub-lattice estimate is the vertex of a parabola through the scores one lattice
-        step (a cell, 5 cm) either side of the peak, and the score is not a parabola over that range: where
-        end points leave a face near a corner it falls off more slowly on one side, and the vertex lies ahead
-        of the score's own maximum along the track (docs/pose.md, "The parabola's bias")."""
-        pose = np.asarray(pose, dtype=np.float64).copy()
-        if directions.shape[0] == 0 or pts.shape[0] == 0 or not lever > 0:
-            return pose
-        steps = np.array([h, h, h / lever])
-        basis = directions / np.linalg.norm(directions / steps, axis=1, keepdims=True)  # rows: h-sized steps
-        k = basis.shape[0]
-        eye = np.eye(k)
-        i, j = np.triu_indices(k, 1)
-        offs = [np.zeros(k)] + [sg * eye[m] for m in range(k) for sg in (1, -1)]
-        offs += [a * eye[m] + b * eye[n] for m, n in zip(i, j) for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
-        offs = np.array(offs)
-        limit = np.array([0.5 * self.resolution, 0.5 * self.resolution, np.radians(0.5)])
-        for _ in range(iterations):
-            sc = self.score(pts, w, pose + offs @ basis)
-            grad = np.array([(sc[1 + 2 * m] - sc[2 + 2 * m]) / 2 for m in range(k)])
-            hess = np.diag([sc[1 + 2 * m] - 2 * sc[0] + sc[2 + 2 * m] for m in range(k)])
-            for q, (m, n) in enumerate(zip(i, j)):
-                pp, pm, mp, mm = sc[1 + 2 * k + 4 * q: 5 + 2 * k + 4 * q]
-                hess[m, n] = hess[n, m] = (pp - pm - mp + mm) / 4
-            if np.linalg.eigvalsh(hess)[-1] >= 0:  # not a peak at this scale
-                break
-            step = np.clip(-np.linalg.solve(hess, grad) @ basis, -limit, limit)
-            if self.score(pts, w, pose + step)[0] <= sc[0]:
-                break
-            pose += step
-            if np.all(np.abs(step) < 0.05 * steps):
-                break
-        return pose
-
     def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
         """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of
         the crop's edge."""
