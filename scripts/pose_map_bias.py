@@ -85,7 +85,7 @@ def main() -> int:
             last = run.scan_true_poses[i, :2]
     passes = [(False, True), (True, False)] if args.full_map else [(True, True)]
     errs, grad, prof, since, peaks, para = [], {}, [], 0, [], []
-    exact_err: dict[tuple, list] = {}  # per 10 cm bin: sum of the field's along-track vector at exact end points, count
+    exact_err: dict[tuple, list] = {}  # per 10 cm bin: [sum of the field's along-track vector (m), count]
     for do_match, do_map in passes:
         if do_match and not do_map:
             rebuild(run.scan_true_poses[n // 2, :2])
@@ -105,32 +105,33 @@ def main() -> int:
                     errs.append((run.scan_stamps[i], c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
                 a = lp[2] + scan.angles[idx]
                 u = np.stack([np.cos(a), np.sin(a)], axis=1)
-                # where the score itself peaks along the track (y and yaw at the truth; 0.25 mm steps)
-                pm0 = lp[:2] + ranges[idx][:, None] * u
-                sc1 = [w @ est.field.log_likelihood(pm0 + dv * np.array([c, s])) for dv in DENSE]
-                peaks.append(DENSE[int(np.argmax(sc1))])
+                pm = lp[:2] + ranges[idx][:, None] * u
+
+                def along_scores(offsets):  # scores of the pose moved along the track (y and yaw at the truth)
+                    return np.array([w @ est.field.log_likelihood(pm + dv * np.array([c, s])) for dv in offsets])
+
+                peaks.append(DENSE[int(np.argmax(along_scores(DENSE)))])  # where the score itself peaks
                 # the matcher's sub-lattice estimate: the vertex of a parabola through the lattice neighbours
-                v3 = [w @ est.field.log_likelihood(pm0 + dv * np.array([c, s])) for dv in (-g.resolution, 0.0, g.resolution)]
+                v3 = along_scores((-g.resolution, 0.0, g.resolution))
                 den = v3[0] - 2 * v3[1] + v3[2]
                 para.append(np.clip(0.5 * (v3[0] - v3[2]) / den, -0.5, 0.5) * g.resolution if den < 0 else np.nan)
                 # the score's gradient along the track at the true pose, per end point, binned by position
-                pm = lp[:2] + ranges[idx][:, None] * u
                 step = 0.002 * np.array([c, s])
                 gr = (est.field.log_likelihood(pm + step) - est.field.log_likelihood(pm - step)) / 0.004
                 for key, gv in zip(map(tuple, np.round(pm / 0.1).astype(int)), gr):
                     grad[key] = grad.get(key, 0.0) + gv
-                # the field's vector along forward beams around their true end points (no mirror images)
+                # the field's vector along the track at the exact end points (0 for an exact field)
                 tr = np.asarray(run.true_range[i], dtype=np.float64)[idx]
-                ok = np.isfinite(tr) & ~run.is_ghost[i][idx]
-                pt = lp[:2] + tr[ok, None] * u[ok]
+                real = np.isfinite(tr) & ~run.is_ghost[i][idx]
+                pt = lp[:2] + tr[real, None] * u[real]
                 vt = est.field.wall_vectors(pt)
-                okv = np.all(np.isfinite(vt), axis=1) & (np.hypot(*vt.T) < 0.06)
-                along = vt[okv] @ np.array([c, s])
-                for key, av in zip(map(tuple, np.round(pt[okv] / 0.1).astype(int)), along):
+                near = np.all(np.isfinite(vt), axis=1) & (np.hypot(*vt.T) < 0.06)
+                for key, av in zip(map(tuple, np.round(pt[near] / 0.1).astype(int)), vt[near] @ np.array([c, s])):
                     acc = exact_err.setdefault(key, [0.0, 0])
                     acc[0] += av
                     acc[1] += 1
-                fwd = np.isfinite(tr) & ~run.is_ghost[i][idx] & (np.cos(scan.angles[idx]) > 0.7)
+                # the field's vector along forward beams around their true end points (no mirror images)
+                fwd = real & (np.cos(scan.angles[idx]) > 0.7)
                 q = (lp[:2] + tr[fwd, None] * u[fwd])[None] + OFFSETS[:, None, None] * u[fwd][None]
                 vq = est.field.wall_vectors(q.reshape(-1, 2)).reshape(len(OFFSETS), -1, 2)
                 near = np.all(np.isfinite(vq), axis=(0, 2)) & (np.hypot(*vq[5].T) < 0.06)
@@ -162,7 +163,8 @@ def main() -> int:
     print(f"field vector along the track at the exact end points (true pose, true range; 0 for an exact field): "
           f"mean {1000 * tot:+.2f} mm; largest 10 cm bins (sum, mm; mean):")
     for (bx, by), (sv, cv) in sorted(exact_err.items(), key=lambda kv: -abs(kv[1][0]))[:10]:
-        print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {1000 * sv:+8.1f} mm over {cv} points, mean {1000 * sv / cv:+.2f} mm")
+        print(f"   ({bx / 10:6.1f}, {by / 10:6.1f}) m: {1000 * sv:+8.1f} mm over {cv} points, "
+              f"mean {1000 * sv / cv:+.2f} mm")
     pr = np.concatenate(prof, axis=1)
     print("field vector along forward beams (mm; positive: the wall lies further along the beam) "
           "at the true end point + s:")
