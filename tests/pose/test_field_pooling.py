@@ -51,23 +51,27 @@ def test_per_cell_means_lean_the_wall_away_from_the_viewer():
     assert fine1[iy, c11] > fine1[iy, c12]
 
 
-def _hits_field(segment_x: float, params: FieldParams = FieldParams()) -> LikelihoodField:
-    """Field of a straight wall along y at x = segment_x (m) (off the cell grid), from exact end points at
-    random places along the wall (so each cell's mean point sits somewhere else along it), stored as the
-    estimator stores them (sums of offsets per cell)."""
+def _points_field(xy: np.ndarray, params: FieldParams = FieldParams()) -> LikelihoodField:
+    """Field of exact end points xy (n, 2) (m) on a 3 x 3 m grid of 5 cm cells, stored as the estimator
+    stores them (sums of offsets per cell), their cells occupied."""
     grid = MapGrid(resolution=0.05, origin=(0.0, 0.0), shape=(60, 60))
     occ = OccupancyGrid(grid)
     layers = [np.zeros(grid.shape, np.float32) for _ in range(3)]
-    ys = np.random.default_rng(4).uniform(0.3, 2.7, 150)
-    xy = np.stack([np.full(ys.size, segment_x), ys], axis=1)
     cells = grid.world_to_cell(xy)
     off = xy - (grid.origin + cells * grid.resolution)
-    for k, vals in enumerate((off[:, 0], off[:, 1], np.ones(ys.size))):
+    for k, vals in enumerate((off[:, 0], off[:, 1], np.ones(len(xy)))):
         np.add.at(layers[k], (cells[:, 1], cells[:, 0]), vals.astype(np.float32))
     occ.log_odds[cells[:, 1], cells[:, 0]] = 2.0
     fld = LikelihoodField(params)
     fld.rebuild(occ, np.array([1.5, 1.5]), tuple(layers))
     return fld
+
+
+def _hits_field(segment_x: float, params: FieldParams = FieldParams()) -> LikelihoodField:
+    """Field of a straight wall along y at x = segment_x (m) (off the cell grid), from exact end points at
+    random places along the wall (so each cell's mean point sits somewhere else along it)."""
+    ys = np.random.default_rng(4).uniform(0.3, 2.7, 150)
+    return _points_field(np.stack([np.full(ys.size, segment_x), ys], axis=1), params)
 
 
 def test_field_is_the_gaussian_of_the_exact_distance_between_cell_centres():
@@ -98,30 +102,19 @@ def test_along_a_straight_wall_the_field_does_not_change():
 
 def _corner_field(cx: float = 1.013, cy: float = 1.012) -> LikelihoodField:
     """Field of a convex corner (off the cell grid): a wall along y at x = cx up to y = cy and one along x at
-    y = cy from x = cx on, from exact end points at random places along both, stored as the estimator stores
-    them."""
-    grid = MapGrid(resolution=0.05, origin=(0.0, 0.0), shape=(60, 60))
-    occ = OccupancyGrid(grid)
+    y = cy from x = cx on, from exact end points at random places along both."""
     rng = np.random.default_rng(3)
     ya, xb = rng.uniform(0.3, cy, 300), rng.uniform(cx, 2.5, 300)
-    xy = np.concatenate([np.stack([np.full(ya.size, cx), ya], axis=1), np.stack([xb, np.full(xb.size, cy)], axis=1)])
-    cells = grid.world_to_cell(xy)
-    off = xy - (grid.origin + cells * grid.resolution)
-    layers = [np.zeros(grid.shape, np.float32) for _ in range(3)]
-    for k, vals in enumerate((off[:, 0], off[:, 1], np.ones(len(xy)))):
-        np.add.at(layers[k], (cells[:, 1], cells[:, 0]), vals.astype(np.float32))
-    occ.log_odds[cells[:, 1], cells[:, 0]] = 2.0
-    fld = LikelihoodField(FieldParams())
-    fld.rebuild(occ, np.array([1.5, 1.5]), tuple(layers))
-    return fld
+    return _points_field(np.concatenate([np.stack([np.full(ya.size, cx), ya], axis=1),
+                                         np.stack([xb, np.full(xb.size, cy)], axis=1)]))
 
 
-@pytest.mark.xfail(strict=True, reason="issue 20: near a convex corner the field chamfers the wall into the "
-                   "solid (end points of both faces in one neighbourhood); not fixed, see docs/pose.md")
+@pytest.mark.xfail(strict=True, reason="issue 20, not fixed: near a convex corner the field's wall is pulled "
+                   "towards the other face (docs/pose.md, 'Where the forward match bias comes from')")
 def test_field_is_exact_on_both_faces_near_a_convex_corner():
     """End points exactly on a face, 5-10 cm from a convex corner, are on the field's wall (within 3 mm):
-    the wall of one face is not pulled towards the other. Today the error there is 3-14 mm, towards the
-    solid side of the corner (the forward match bias of docs/pose.md, "Start-up bias")."""
+    the wall of one face is not pulled towards the other. Today it is off by up to 14 mm at 5 cm and below
+    3 mm only from about 9 cm on (one source of the forward match bias of docs/pose.md, "Start-up bias")."""
     fld = _corner_field()
     d = np.linspace(0.05, 0.10, 6)
     on_a = np.stack([np.full(d.size, 1.013), 1.012 - d], axis=1)
