@@ -402,16 +402,24 @@ class Runtime:
                 await proc
         if self.latest is not None:
             try:
-                # the scans are done: in this process, so that the last maps never depend on the map worker
                 out = self.config.output
                 maps = await self.stage.call(self.processor.copy_maps)
                 if self.sink is not None:
                     ns = self.time_base.ns(time.monotonic())
-                    self.sink.maps(ns, *await asyncio.to_thread(map_messages, maps, ns, self.config.mapping.map_frame))
-                self.summary.exports = await asyncio.to_thread(maps.export, out.out_dir, self.export_stem)
+                    self.sink.maps(ns, *await self._final(map_messages, maps, ns, self.config.mapping.map_frame))
+                self.summary.exports = await self._final(maps.export, out.out_dir, self.export_stem)
             except Exception as exc:
                 log.error("final map export failed: %s", exc)
             await self._finish_graph()
+
+    async def _final(self, fn, *args):
+        """``fn(*args)`` in the map worker (the runtime never imports matplotlib: +29 MiB), or in a thread of
+        this process if the worker is gone: the last maps never depend on the map worker."""
+        try:
+            return await self.map_worker.run(fn, *args)
+        except BrokenProcessPool as exc:
+            log.warning("map worker gone (%s): the final maps are made in this process", exc)
+            return await asyncio.to_thread(fn, *args)
 
     async def _finish_graph(self) -> None:
         """With loop closure: wait for the pose graph, record its optimised trajectory and corrected map."""

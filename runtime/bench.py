@@ -4,7 +4,9 @@
    MCAP: latency from the scan's last bytes arriving (transport read) to the maps updated, per scan.
 2. Replay of that recording as fast as possible, from the decoded messages and from the raw bytes through
    the drivers' decoders: scans/s, times real time, per-stage time per scan.
-3. Peak resident memory (this process and the device process).
+3. Peak resident memory: of the live runtime, of each replay (each run's own peak: the kernel's high-water
+   mark is reset between the runs, :func:`reset_peak_rss`), of this whole process (the three runs one after
+   the other) and of the largest child process (emulated devices, map worker).
 ``stages``: also the CPU time of each stage of the processing (:mod:`runtime.stageprof`).
 ``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
 says how many. ``config``: the runtime's settings (``--config``, ``--mapping.*`` ... flags), e.g.
@@ -33,6 +35,29 @@ def _ms(v) -> str:
     if a.size == 0:
         return "n/a"
     return f"median {np.median(a):6.2f}  p90 {np.percentile(a, 90):6.2f}  p99 {np.percentile(a, 99):6.2f}  ms"
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident set (VmHWM) to its current size (Linux >= 4.0,
+    /proc/self/clear_refs); False where that is not possible (the peaks then include the earlier runs)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident set (MiB) since the start or the last :func:`reset_peak_rss`."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
@@ -76,6 +101,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     replay_config = config
+    peaks: list[str] = []
+    separate = reset_peak_rss()
     if recording is None:
         from runtime.demo import DemoOptions, run_demo
 
@@ -91,7 +118,9 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
+        peaks.append(f"live runtime {peak_rss_mib():.0f}")
     for source in ("messages", "raw"):
+        separate = separate and reset_peak_rss()
         r = replay_file(recording, replay_config, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
                         as_recorded=False)
         lines.append(f"replay from {source} ({beside}): {r.scans} scans in {r.wall_time:.2f} s = "
@@ -106,6 +135,7 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
                          f"{r.data_time / total:.1f}x real time with the wait")
             graph.close()
         lines += _stage_lines(r.stages, "")
+        peaks.append(f"replay from {source} {peak_rss_mib():.0f}")
     if stages:
         from runtime.stageprof import stage_profile
 
@@ -119,8 +149,10 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         lines.append(t.table())
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    lines.append(f"peak memory: runtime {own:.0f} MiB; largest child process (emulated devices, map worker) "
-                 f"{kids:.0f} MiB")
+    if separate:
+        lines.append(f"peak memory (resident, each run's own): {', '.join(peaks)} MiB")
+    lines.append(f"peak memory: this process (all its runs) {own:.0f} MiB; largest child process (emulated "
+                 f"devices, map worker) {kids:.0f} MiB")
     lines.append("targets (issue 19): replay from raw >= 400 scans/s (10x real time) on one core; live p99 <= 20 ms "
                  "idle, <= 25 ms with one busy process (--load 1), no scan dropped at 40 Hz; runtime peak memory "
                  "<= 300 MiB")

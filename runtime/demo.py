@@ -5,7 +5,9 @@ serves the ARIA protocol on a pseudo-terminal; the emulated Hokuyo serves SCIP o
 the simulated world from the robot's true laser pose. The runtime connects to both exactly as to hardware,
 drives the robot along the world's route with velocity commands computed from its *estimated* pose, builds
 the maps online, records everything to MCAP, and at the end the glass confidence map is scored against the
-world's blueprint. ``speed`` > 1 runs the emulators (and so the whole demo) faster than real time.
+world's blueprint. ``speed`` > 1 runs the emulators (and so the whole demo) faster than real time; the
+processing queue then holds ``speed`` times as many scans (``pipeline.queue_size`` is a number of scans at
+the laser's real rate, 40 Hz: 4 scans = 100 ms), so that it spans the same time as on the robot.
 """
 
 from __future__ import annotations
@@ -119,6 +121,12 @@ async def _come_to_rest(rt: Runtime, speed: float, timeout: float = 3.0) -> None
             await asyncio.wait_for(rt.wait_pose(), 1.0)
 
 
+def queue_for_speed(queue_size: int, speed: float) -> int:
+    """The processing queue (scans) of a demo ``speed`` times faster than real time: as long in time as
+    ``queue_size`` scans at real time (never shorter)."""
+    return max(queue_size, math.ceil(queue_size * speed))
+
+
 async def run_demo(opts: DemoOptions) -> DemoResult:
     """Start the emulated devices (a separate process), run the runtime against them, score the map.
     Never moves anything real: the devices are on a pseudo-terminal and on 127.0.0.1."""
@@ -155,6 +163,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
         m.deskew = False  # the emulated laser takes all beams of a scan from one pose (no sweep motion)
         m.registration = opts.registration or m.registration
         m.window = opts.window or m.window
+        cfg.pipeline.queue_size = queue_for_speed(cfg.pipeline.queue_size, opts.speed)
         cfg.output.out_dir = str(out)
         cfg.output.record = str(out / "demo.mcap") if opts.record else ""
 

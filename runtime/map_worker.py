@@ -53,24 +53,26 @@ class MapWorker:
     async def export(self, maps: MapCopy, out_dir: str, stem: str) -> dict[str, str]:
         """Write PNG, .npy + .json, PGM + YAML (see :func:`glassmap.mapping.export_maps`); returns the paths.
         Raises OSError when the files cannot be written, BrokenProcessPool when the worker died."""
-        return await self._run(maps.export, out_dir, stem)
+        return await self.run(maps.export, out_dir, stem)
 
     async def map_messages(self, maps: MapCopy, stamp_ns: int, frame_id: str) -> tuple[bytes, bytes]:
         """CDR of the nav_msgs/OccupancyGrid (/map) and the foxglove_msgs/Grid (/glass/map) of ``maps``."""
-        return await self._run(map_messages, maps, stamp_ns, frame_id)
+        return await self.run(map_messages, maps, stamp_ns, frame_id)
 
     async def graph_messages(self, snapshot, stamp_ns: int, frame_id: str, time_base) -> list[tuple[str, bytes]]:
         """CDR of the pose graph's messages (:func:`runtime.graph_worker.graph_messages`)."""
         from runtime.graph_worker import graph_messages
 
-        return await self._run(graph_messages, snapshot, stamp_ns, frame_id, time_base)
+        return await self.run(graph_messages, snapshot, stamp_ns, frame_id, time_base)
 
     def shutdown(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    async def _run(self, fn, *args):
+    async def run(self, fn, *args):
+        """``fn(*args)`` in the worker process (``fn`` and its arguments picklable); raises what it raises,
+        BrokenProcessPool when the worker died."""
         await self.start()
         if self._pool is None:
             return await asyncio.to_thread(fn, *args)

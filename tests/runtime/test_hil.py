@@ -324,3 +324,10 @@ def test_real_devices_short_run(tmp_path, laser_url, base_url):
     assert summary.stages.scans_processed > 0 and summary.stages.odometry_received > 0
     with AnyReader([tmp_path / "real.mcap"]) as reader:
         assert {"/scan", "/odom", "/raw/laser", "/raw/base"} <= {c.topic for c in reader.connections}
+
+
+def test_a_faster_demo_queues_as_many_seconds_of_scans_as_real_time():
+    from runtime.demo import queue_for_speed
+
+    assert queue_for_speed(4, 1.0) == 4 and queue_for_speed(4, 4.0) == 16 and queue_for_speed(4, 2.5) == 10
+    assert queue_for_speed(4, 0.5) == 4  # slower than real time: never fewer than configured

@@ -51,7 +51,7 @@ def test_worker_exports_and_serialises_in_its_own_process(tmp_path):
         worker = MapWorker()
         try:
             await worker.start()
-            pid = await worker._run(os.getpid)
+            pid = await worker.run(os.getpid)
             paths = await worker.export(small_maps(), str(tmp_path), "w")
             msgs = await worker.map_messages(small_maps(), 5, "map")
         finally:
@@ -72,7 +72,7 @@ def test_worker_ends_when_the_runtime_process_is_killed():
         async def main():
             w = MapWorker()
             await w.start()
-            print(await w._run(os.getpid), flush=True)
+            print(await w.run(os.getpid), flush=True)
             time.sleep(60)
 
         if __name__ == "__main__":
@@ -120,3 +120,25 @@ def test_falls_back_to_a_thread_when_the_process_cannot_start(tmp_path):
     in_process, png = out.stdout.split()
     assert in_process == "True" and Path(png).is_file()
     assert "map worker process did not start" in out.stderr
+
+
+def test_final_maps_are_written_in_the_runtime_when_the_worker_died(tmp_path):
+    """The runtime makes its final maps in the map worker (the runtime process never imports matplotlib);
+    if the worker died, in the runtime itself: the last maps never depend on the worker."""
+    from runtime.app import Runtime
+    from runtime.config import RuntimeConfig
+
+    async def main():
+        rt = Runtime(RuntimeConfig(), processor=object())
+        await rt.map_worker.start()
+        pid = await rt.map_worker.run(os.getpid)
+        os.kill(pid, signal.SIGKILL)
+        await asyncio.sleep(0.5)
+        try:
+            paths = await rt._final(small_maps().export, str(tmp_path), "s")
+        finally:
+            rt.map_worker.shutdown()
+        return paths
+
+    paths = asyncio.run(main())
+    assert Path(paths["png"]).is_file() and Path(paths["npy"]).is_file()
