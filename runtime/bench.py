@@ -94,6 +94,7 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
 def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool,
          config=None) -> list[str]:
     from runtime.replay import replay_file
+    from runtime.tuning import release_memory
 
     lc = config is not None and config.mapping.loop_closure
     lines = [f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
@@ -119,6 +120,7 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
         peaks.append(f"live runtime {peak_rss_mib():.0f}")
+        release_memory()
     for source in ("messages", "raw"):
         separate = separate and reset_peak_rss()
         r = replay_file(recording, replay_config, source=source, out_dir=str(out / f"replay_{source}"), progress=True,
@@ -136,6 +138,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             graph.close()
         lines += _stage_lines(r.stages, "")
         peaks.append(f"replay from {source} {peak_rss_mib():.0f}")
+        del r  # its processor (grids, likelihood fields, reference cycles) is gone before the next run starts
+        release_memory()
     if stages:
         from runtime.stageprof import stage_profile
 

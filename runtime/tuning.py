@@ -51,12 +51,18 @@ def freeze_startup() -> None:
     """Collect once and give the freed memory back to the system (glibc ``malloc_trim``: what an earlier
     run in this process left), then exempt every object alive now from later collections (``gc.freeze``);
     undo with :func:`thaw` at the end of the run."""
+    release_memory()
+    gc.freeze()
+
+
+def release_memory() -> None:
+    """Collect garbage (reference cycles: an earlier run's processor, grids and threads) and give freed
+    memory back to the system (glibc ``malloc_trim``)."""
     gc.collect()
     try:
         ctypes.CDLL(None).malloc_trim(0)
     except (OSError, AttributeError):  # not glibc
         pass
-    gc.freeze()
 
 
 def thaw() -> None:
