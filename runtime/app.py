@@ -1,6 +1,6 @@
 """The on-robot application: one asyncio task per device, the processing stage, the recorder, map export.
 
-    laser task  --Scan-->  ProcessingStage (bounded queue, executor thread)  --ScanResult-->  recorder, pose
+    laser task  --Scan-->  ProcessingStage (bounded queue, processing thread)  --ScanResult-->  recorder, pose
     base task   --Odometry-->        |                                                       (for a driver)
     export task: maps to out_dir every export_period s, /map and /glass/map every map_publish_period s,
                  both made from a copy of the maps by the map worker process (runtime.map_worker)

@@ -181,13 +181,19 @@ class ProcessingStage:
             self.stats.scans_processed += 1
             result.bytes_in_time = t_in
             result.done_time = self.clock()
-            if not _call_soon(loop, self._deliver, result):
+            if not _call_soon(loop, self._deliver, result, done):
                 return
         _call_soon(loop, _settle, done, error)
 
-    def _deliver(self, result: ScanResult) -> None:
-        if self.on_result is not None:
+    def _deliver(self, result: ScanResult, done: asyncio.Future) -> None:
+        """``on_result`` on the event loop; if it raises, :meth:`run` raises that and the thread stops."""
+        if self.on_result is None or done.done():
+            return
+        try:
             self.on_result(result)
+        except Exception as exc:
+            self._stop_thread()
+            done.set_exception(exc)
 
     def _stop_thread(self) -> None:
         with self._cond:

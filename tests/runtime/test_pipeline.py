@@ -129,3 +129,56 @@ def test_processor_maps_occupancy_on_key_scans_only_and_the_glass_path_on_every_
     # (beams classified as glass may raise cells on any scan: glass_hits_occupy; only key scans clear)
     assert np.flatnonzero(cleared).tolist() == [5, 10]
     assert proc.mapper.scans == 12 and proc.estimator.stats.scans == 12
+
+
+async def test_a_failing_result_handler_ends_the_stage_with_its_error():
+    proc = Recorder()
+
+    def on_result(r):
+        if r.scan.seq == 2:
+            raise KeyError("sink broken")
+
+    stage = ProcessingStage(proc, queue_size=10, max_scan_age=1e9, on_result=on_result, clock=lambda: 0.0)
+    for seq in range(1, 6):
+        stage.submit_scan(make_scan(0.1 * seq, seq))
+    with pytest.raises(KeyError, match="sink broken"):
+        await stage.run()
+    stage.shutdown()
+
+
+async def test_calls_run_between_scans_and_before_the_queued_ones():
+    """A call (map copy, warm-up) never overlaps a scan, and goes before scans still waiting."""
+    log: list[str] = []
+    busy = threading.Lock()
+
+    class Tracing(Recorder):
+        def process(self, scan, odometry):
+            assert busy.acquire(blocking=False), "a call overlapped a scan"
+            try:
+                r = super().process(scan, odometry)
+                log.append(f"scan {scan.seq}")
+                return r
+            finally:
+                busy.release()
+
+    def call():
+        assert busy.acquire(blocking=False), "a scan overlapped a call"
+        log.append("call")
+        busy.release()
+
+    proc = Tracing(block=True)
+    stage = ProcessingStage(proc, queue_size=10, max_scan_age=1e9, clock=lambda: 0.0)
+    runner = asyncio.create_task(stage.run())
+    stage.submit_scan(make_scan(0.0, 0))
+    await asyncio.get_running_loop().run_in_executor(None, proc.started.wait, 5)  # scan 0 is in the processor
+    stage.submit_scan(make_scan(0.1, 1))
+    stage.submit_scan(make_scan(0.2, 2))
+    pending_call = asyncio.create_task(stage.call(call))
+    while not stage._calls_waiting:  # the call is waiting for scan 0 to end
+        await asyncio.sleep(0.005)
+    proc.release.set()
+    await pending_call
+    stage.close()
+    await runner
+    assert log == ["scan 0", "call", "scan 1", "scan 2"]
+    stage.shutdown()
