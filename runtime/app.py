@@ -190,6 +190,8 @@ class Runtime:
             with handle_signals(stop):
                 # before the devices connect, so that the first scans are not delayed by start-up work
                 await self.stage.call(self.processor.warm_up)
+                # the ROS type store (~0.1-0.2 s to build) before the first odometry message needs it
+                as_recorded_odometry(Odometry(stamp=time.monotonic(), x=0.0, y=0.0, yaw=0.0), self.time_base)
                 await self.map_worker.start()
                 freeze_startup()  # start-up objects out of the garbage collector's way (runtime.tuning)
                 await self._connect()
