@@ -235,6 +235,13 @@ class McapRecorder:
 
     def _run(self) -> None:
         ts = typestore()
+        for msgtype in sorted(set(self.topics.values())):
+            # generate each topic type's serialiser now (8-40 ms each, holding the GIL), not at its first
+            # message, when it would hold up the processing thread in the first second of a run
+            try:
+                ts.get_msgdef(msgtype)
+            except Exception as exc:  # reported again with the first message of that type
+                log.debug("recorder: no serialiser for %s yet: %s", msgtype, exc)
         last_flush = time.monotonic()
         dirty = False
         while True:
