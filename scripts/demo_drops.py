@@ -2,7 +2,8 @@
 
 Runs the demo in this process (no recording unless --record) with the processing stage's queue and the
 processor wrapped, and prints which counter dropped scans and when, how busy the processing thread was
-(wall clock inside the processor, and its CPU time) in each half second, the largest gaps between scan
+in each half second (wall clock inside the processor, split by the kernel's schedstat into time on a core,
+time waiting for a core, and the rest: waiting for the GIL or a lock), the largest gaps between scan
 arrivals (the event loop or the emulated laser held up), and the garbage-collection pauses over 5 ms.
 
     python scripts/demo_drops.py [--speed 4] [--duration 40] [--queue N] [--record] [--world office]
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     from runtime.demo import DemoOptions, format_result, run_demo
 
     arrivals: list[tuple[float, int]] = []  # (host time, scans dropped from the full queue by this arrival)
-    procs: list[tuple[float, float, float]] = []  # (start, wall s, thread CPU s) per processed scan
+    procs: list[tuple[float, float, float, float]] = []  # (start, wall, on a core, waiting for a core) s
     pauses: list[tuple[float, float, int, str]] = []  # gc: (start, s, generation, thread)
     submit, process = P.ProcessingStage.submit_scan, RP.MappingProcessor.process
 
@@ -54,9 +55,10 @@ def main(argv: list[str] | None = None) -> int:
         arrivals.append((time.monotonic(), self.stats.dropped_overflow - before))
 
     def timed_process(self, scan, odometry):
-        t0, c0 = time.monotonic(), time.thread_time()
+        t0, (c0, q0) = time.monotonic(), _schedstat()
         r = process(self, scan, odometry)
-        procs.append((t0, time.monotonic() - t0, time.thread_time() - c0))
+        c1, q1 = _schedstat()
+        procs.append((t0, time.monotonic() - t0, c1 - c0, q1 - q0))
         return r
 
     gc_start: list[float] = [0.0]
@@ -83,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     t0 = arrivals[0][0]
     print("half-second windows: scans in / dropped from the full queue / processed; inside the processor: wall "
-          "(busy fraction) and CPU ms")
+          "(busy fraction) = on a core + waiting for a core + the rest (GIL, locks), ms")
     end = max(t for t, _ in arrivals) - t0
     k = 0
     while k * 0.5 <= end:
@@ -91,16 +93,30 @@ def main(argv: list[str] | None = None) -> int:
         n_in = sum(1 for t, _ in arrivals if lo <= t < hi)
         n_drop = sum(d for t, d in arrivals if lo <= t < hi)
         ps = [p for p in procs if lo <= p[0] < hi]
-        wall, cpu = sum(p[1] for p in ps), sum(p[2] for p in ps)
+        wall, cpu, queued = (sum(p[i] for p in ps) for i in (1, 2, 3))
         print(f"  {0.5 * k:6.1f} s  in {n_in:3d}  dropped {n_drop:3d}  processed {len(ps):3d}  "
-              f"wall {1e3 * wall:5.0f} ms ({wall / 0.5:4.0%})  CPU {1e3 * cpu:5.0f} ms")
+              f"wall {1e3 * wall:5.0f} ({wall / 0.5:4.0%}) = {1e3 * cpu:4.0f} + {1e3 * queued:4.0f} + "
+              f"{1e3 * (wall - cpu - queued):4.0f}")
         k += 1
+    wall, cpu, queued = (sum(p[i] for p in procs) for i in (1, 2, 3))
+    print(f"whole run, inside the processor: on a core {cpu / wall:.0%}, waiting for a core {queued / wall:.0%}, "
+          f"the rest (GIL, locks) {(wall - cpu - queued) / wall:.0%} of {wall:.1f} s")
     gaps = sorted(((arrivals[i + 1][0] - arrivals[i][0], arrivals[i][0] - t0) for i in range(len(arrivals) - 1)),
                   reverse=True)[:5]
     print("largest gaps between scan arrivals:", ", ".join(f"{1e3 * g:.0f} ms at {t:.2f} s" for g, t in gaps))
     print("gc pauses > 5 ms:", ", ".join(f"{1e3 * d:.0f} ms (gen {g}, {th}) at {t - t0:.2f} s"
                                         for t, d, g, th in pauses) or "none")
     return 0
+
+
+def _schedstat() -> tuple[float, float]:
+    """(s on a core, s waiting for a core) of the calling thread (Linux schedstat; CPU time and 0 without)."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            on_cpu, waiting, _ = f.read().split()
+        return int(on_cpu) * 1e-9, int(waiting) * 1e-9
+    except (OSError, ValueError):
+        return time.thread_time(), 0.0
 
 
 if __name__ == "__main__":
