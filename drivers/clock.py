@@ -158,7 +158,11 @@ def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
     None when no line with a positive slope lies below them all."""
     s0, a0 = s[0], a[0]
     s, a = s - s0, a - a0  # host times may be epoch seconds: keep the rounding far below a microsecond
-    i, j = np.triu_indices(s.size, 1)
+    # both points of a feasible pair lie on the lower convex hull (within the 1e-9 tolerance below): only
+    # pairs of points near the hull are tried, in the order of all pairs (the same first minimum)
+    near = _near_lower_hull(s, a, 1e-6)
+    i, j = np.triu_indices(near.size, 1)
+    i, j = near[i], near[j]
     ds = s[j] - s[i]
     ok = ds > 0
     i, j, ds = i[ok], j[ok], ds[ok]
@@ -171,3 +175,23 @@ def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
     if not np.isfinite(cost[k]):
         return None
     return float(a0 + c[k] - b[k] * s0), float(b[k])
+
+
+def _near_lower_hull(s: np.ndarray, a: np.ndarray, tol: float) -> np.ndarray:
+    """Indices (ascending) of the points (s_i, a_i) at most ``tol`` above the lower convex hull of all of
+    them (monotone chain: O(n log n)); a point with the least a of several equal s stands for them on the
+    hull, the others are measured against it."""
+    order = np.lexsort((a, s))
+    so, ao = s[order], a[order]
+    first = np.ones(so.size, dtype=bool)
+    first[1:] = so[1:] != so[:-1]
+    xs, ys = so[first].tolist(), ao[first].tolist()
+    hx: list[float] = []
+    hy: list[float] = []
+    for x, y in zip(xs, ys):
+        while len(hx) >= 2 and (hx[-1] - hx[-2]) * (y - hy[-2]) - (hy[-1] - hy[-2]) * (x - hx[-2]) <= 0:
+            hx.pop()
+            hy.pop()
+        hx.append(x)
+        hy.append(y)
+    return np.flatnonzero(a - np.interp(s, hx, hy) <= tol)

@@ -98,3 +98,45 @@ def test_without_tm1_the_latency_defaults_to_one_scan_time():
 def test_bad_arguments():
     with pytest.raises(ValueError):
         ClockMapper(block=0)
+
+
+def _lower_envelope_all_pairs(s, a):
+    """The envelope fit before it tried only the points near the lower hull: every pair (reference)."""
+    s0, a0 = s[0], a[0]
+    s, a = s - s0, a - a0
+    i, j = np.triu_indices(s.size, 1)
+    ds = s[j] - s[i]
+    ok = ds > 0
+    i, j, ds = i[ok], j[ok], ds[ok]
+    b = (a[j] - a[i]) / ds
+    c = a[i] - b * s[i]
+    resid = a[None, :] - (c[:, None] + b[:, None] * s[None, :])
+    feasible = (resid.min(axis=1) >= -1e-9) & (b > 0)
+    cost = np.where(feasible, resid.sum(axis=1), np.inf)
+    k = int(np.argmin(cost))
+    if not np.isfinite(cost[k]):
+        return None
+    return float(a0 + c[k] - b[k] * s0), float(b[k])
+
+
+def test_the_envelope_fit_equals_the_all_pairs_fit():
+    from drivers.clock import _lower_envelope
+
+    rng = np.random.default_rng(7)
+    cases = []
+    for n in (4, 5, 9, 40):
+        for _ in range(150):
+            s = np.sort(rng.uniform(0, 8, n)) + 1.7e9 * rng.integers(0, 2)
+            jitter = rng.exponential(1e-3, n) * (rng.random(n) < 0.7)  # many points exactly on the line
+            a = 1.7e9 + 0.3 + (1 + rng.normal(0, 1e-4)) * (s - s[0]) + jitter
+            cases.append((s, a))
+    for n in (4, 40):  # duplicated sensor times, collinear runs, lines below by less than 1e-9, falling lines
+        s = np.repeat(np.arange(n // 2, dtype=float) * 0.2, 2)
+        cases.append((s, 1.0 + s + np.tile([0.0, 1e-3], n // 2)))
+        s = np.arange(n) * 0.2
+        cases.append((s, 2.0 + 0.5 * s + (rng.random(n) < 0.5) * 5e-10))
+        cases.append((s, 2.0 - 0.5 * s + rng.exponential(1e-3, n)))
+        sh = rng.permutation(s)  # out of order
+        cases.append((sh, 2.0 + sh + rng.exponential(1e-3, n)))
+    for s, a in cases:
+        assert _lower_envelope(s, a) == _lower_envelope_all_pairs(s, a)
