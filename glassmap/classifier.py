@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .classifier_jit import add_bias_relu, standardise
+
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_MODEL = "context"
 FALLBACK_MODEL = "baseline"
@@ -196,13 +198,13 @@ class GlassClassifier:
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         """Temperature-scaled logits (n, 2) float32 for raw features ``x`` (n, k) of this model."""
-        h = (np.asarray(x, dtype=np.float32) - self._mean) * self._inv_std
-        last = len(self._layers) - 1
-        for j, (wt, b) in enumerate(self._layers):
+        h = standardise(np.ascontiguousarray(x, dtype=np.float32), self._mean, self._inv_std)
+        for wt, b in self._layers[:-1]:
             h = h @ wt
-            h += b
-            if j < last:
-                np.maximum(h, 0.0, out=h)
+            add_bias_relu(h, b)
+        wt, b = self._layers[-1]
+        h = h @ wt
+        h += b
         h *= np.float32(self._inv_t)
         return h
 
@@ -229,12 +231,13 @@ class GlassClassifier:
         """p(glass) for rows of the context model's features (the baseline reads their first columns)."""
         return self.predict_features(np.ascontiguousarray(x[:, :len(self.meta.feature_names)]))
 
-    def predict_scan(self, scan, inc, use: np.ndarray) -> np.ndarray:
+    def predict_scan(self, scan, inc, use: np.ndarray, *, angles: np.ndarray | None = None) -> np.ndarray:
         """p(glass) (m,) for the beams ``use`` (n,) bool of ``scan`` (glassmap.types.Scan), given the
-        incidence result ``inc`` of its ranges. A model that reads echoes sees a single-echo scan as one
-        whose beams all had one echo (the runtime falls back to the baseline model instead)."""
+        incidence result ``inc`` of its ranges (``angles``: ``scan.angles`` if the caller has them already).
+        A model that reads echoes sees a single-echo scan as one whose beams all had one echo (the runtime
+        falls back to the baseline model instead)."""
         from .glass_features import scan_features
 
-        x = scan_features(self.meta.model, scan.angles, scan.ranges, scan.intensities, inc, scan.echoes,
+        x = scan_features(self.meta.model, scan.angles if angles is None else angles, scan.ranges, scan.intensities, inc, scan.echoes,
                           scan.echo_intensities)
         return self.predict_features(x[use])

@@ -129,9 +129,10 @@ class GlassMapper:
         self._occ_thr = float(math.log(self.occupancy.params.occ_threshold / (1 - self.occupancy.params.occ_threshold)))
 
     # -- stages --------------------------------------------------------------------------------------------
-    def classify(self, scan: Scan) -> tuple[BeamGlass, np.ndarray]:
+    def classify(self, scan: Scan, *, angles: np.ndarray | None = None) -> tuple[BeamGlass, np.ndarray]:
         """Incidence angles and p(glass) per beam (laser frame; needs no pose). Returns the result and the
-        mask of beams that were classified."""
+        mask of beams that were classified. angles: ``scan.angles`` if the caller has them already."""
+        a = scan.angles if angles is None else angles
         r = scan.ranges
         n = r.shape[0]
         out = BeamGlass(np.full(n, np.nan), np.full(n, np.nan), n_beams=n)
@@ -142,7 +143,7 @@ class GlassMapper:
         out.n_bad = int(np.count_nonzero(np.isnan(r)))
         if out.n_ranged == 0:
             return out, np.zeros(n, dtype=bool)
-        res = incidence_angles(scan.angles, np.where(ranged, r, np.nan), self.config.angle_method,
+        res = incidence_angles(a, np.where(ranged, r, np.nan), self.config.angle_method,
                                self.config.angle_params)
         out.incidence = res.incidence
         has_angle = np.isfinite(res.incidence)
@@ -156,7 +157,7 @@ class GlassMapper:
         use = has_angle & finite_i
         out.n_classified = int(np.count_nonzero(use))
         if out.n_classified:
-            out.p_glass[use] = self.classifier_for(scan).predict_scan(scan, res, use)
+            out.p_glass[use] = self.classifier_for(scan).predict_scan(scan, res, use, angles=a)
         return out, use
 
     def classifier_for(self, scan: Scan):
@@ -174,21 +175,19 @@ class GlassMapper:
         return self._fallback
 
     def register(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray,
-                 sigma: np.ndarray) -> int:
+                 sigma: np.ndarray, *, ends: tuple[np.ndarray, np.ndarray] | None = None) -> int:
         """Registration + Bayesian update of the classified beams ``use`` against the current occupancy grid.
-        ``sigma`` (n,) metres per beam. Returns the number of beams registered."""
+        ``sigma`` (n,) metres per beam; ``ends``: :func:`end_points` of ``use`` at ``laser_pose`` if the caller
+        has them already. Returns the number of beams registered."""
         n_use = int(np.count_nonzero(use))
         if not n_use:
             return 0
         cfg = self.config
-        ang = laser_pose[2] + scan.angles[use]
-        rr = scan.ranges[use]
-        ex = laser_pose[0] + rr * np.cos(ang)
-        ey = laser_pose[1] + rr * np.sin(ang)
+        ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
         g = self.grid
         margin = (cfg.window // 2 + cfg.search_radius + 2) * g.resolution
         g.ensure_contains(*_box(ex, ey, margin))
-        ends = np.empty((rr.shape[0], 2))
+        ends = np.empty((ex.shape[0], 2))
         ends[:, 0] = ex
         ends[:, 1] = ey
         cells, _ = nearest_occupied_cells(ends, g.origin, g.resolution, self.occupancy.log_odds, self._occ_thr,
@@ -208,24 +207,25 @@ class GlassMapper:
             return self.glass.glass_mask(self.config.protect_threshold)
         return None
 
-    def integrate(self, scan: Scan, pose: np.ndarray) -> None:
-        """Occupancy update of one scan at the laser pose (map frame) with the configured protection."""
+    def integrate(self, scan: Scan, pose: np.ndarray, *, angles: np.ndarray | None = None) -> None:
+        """Occupancy update of one scan at the laser pose (map frame) with the configured protection.
+        angles: ``scan.angles`` if the caller has them already."""
         # the mask is taken after integrate() has grown the grid to hold the scan
-        self.occupancy.integrate(pose, scan.angles, scan.ranges, scan.geometry.range_max,
+        self.occupancy.integrate(pose, scan.angles if angles is None else angles, scan.ranges, scan.geometry.range_max,
                                  protect=self.protect_mask)
 
-    def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray) -> int:
+    def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray, *,
+                        ends: tuple[np.ndarray, np.ndarray] | None = None) -> int:
         """For beams classified as glass (p > glass_hit_threshold): raise the occupancy log-odds of their
         end-point cells to at least ``l_occ`` (``MapperConfig.glass_hits_occupy``) and record the cells in the
-        ``<layer>_hits`` layer (``protect="hits"``). Returns the number of such beams."""
-        sel = use.copy()
-        sel[use] = beams.p_glass[use] > self.config.glass_hit_threshold
-        n_sel = int(np.count_nonzero(sel))
+        ``<layer>_hits`` layer (``protect="hits"``). ``ends``: :func:`end_points` of ``use`` at ``laser_pose``
+        if the caller has them already. Returns the number of such beams."""
+        glass = beams.p_glass[use] > self.config.glass_hit_threshold
+        n_sel = int(np.count_nonzero(glass))
         if not n_sel:
             return 0
-        ang = laser_pose[2] + scan.angles[sel]
-        rr = scan.ranges[sel]
-        x, y = laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)
+        ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
+        x, y = ex[glass], ey[glass]
         xy = np.stack([x, y], axis=1)
         g = self.grid
         g.ensure_contains(*_box(x, y, 1.0))
@@ -275,15 +275,17 @@ class GlassMapper:
         if n == 0:
             self.skipped_scans += 1
             return BeamGlass(np.zeros(0), np.zeros(0))
-        beams, use = self.classify(scan)
+        angles = scan.angles
+        beams, use = self.classify(scan, angles=angles)
         bad_sigma = ~np.isfinite(sig)
         beams.n_bad += int(np.count_nonzero(bad_sigma & use))
         use &= ~bad_sigma
         if update_occupancy:
-            self.integrate(scan, occ_pose)
+            self.integrate(scan, occ_pose, angles=angles)
+        ends = end_points(pose, angles, scan.ranges, use)
         if self.config.glass_hits_occupy or self.config.protect == "hits":
-            self.mark_glass_hits(beams, use, scan, occ_pose)
-        beams.n_registered = self.register(beams, use, scan, pose, sig)
+            self.mark_glass_hits(beams, use, scan, occ_pose, ends=ends if occ_pose is pose else None)
+        beams.n_registered = self.register(beams, use, scan, pose, sig, ends=ends)
         if beams.n_ranged == 0:
             self.skipped_scans += 1
         return beams
@@ -312,6 +314,15 @@ class GlassMapper:
     def export(self, out_dir: str, stem: str = "glass_map", scale: int = 2, crop: bool = True) -> dict[str, str]:
         """Write the maps (see :func:`export_maps`). Returns the paths."""
         return export_maps(self.occupancy, self.glass, out_dir, stem, scale, crop)
+
+
+def end_points(laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
+               use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map-frame end points x, y (m) of the beams ``use`` (n,) bool, given the laser pose (3,) in the map frame,
+    the beam angles (n,) rad in the laser frame and the ranges (n,) m."""
+    ang = laser_pose[2] + angles[use]
+    rr = ranges[use]
+    return laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)
 
 
 def _box(x: np.ndarray, y: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
