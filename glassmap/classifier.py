@@ -240,4 +240,4 @@ class GlassClassifier:
 
         x = scan_features(self.meta.model, scan.angles if angles is None else angles, scan.ranges, scan.intensities, inc, scan.echoes,
                           scan.echo_intensities)
-        return self.predict_features(x[use])
+        return self.predict_features(np.compress(use, x, axis=0))  # (x[use], a few times cheaper)
