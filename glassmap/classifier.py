@@ -238,6 +238,6 @@ class GlassClassifier:
         falls back to the baseline model instead)."""
         from .glass_features import scan_features
 
-        x = scan_features(self.meta.model, scan.angles if angles is None else angles, scan.ranges, scan.intensities, inc, scan.echoes,
-                          scan.echo_intensities)
+        a = scan.angles if angles is None else angles
+        x = scan_features(self.meta.model, a, scan.ranges, scan.intensities, inc, scan.echoes, scan.echo_intensities)
         return self.predict_features(np.compress(use, x, axis=0))  # (x[use], a few times cheaper)

@@ -211,8 +211,8 @@ class GlassMapper:
         """Occupancy update of one scan at the laser pose (map frame) with the configured protection.
         angles: ``scan.angles`` if the caller has them already."""
         # the mask is taken after integrate() has grown the grid to hold the scan
-        self.occupancy.integrate(pose, scan.angles if angles is None else angles, scan.ranges, scan.geometry.range_max,
-                                 protect=self.protect_mask)
+        a = scan.angles if angles is None else angles
+        self.occupancy.integrate(pose, a, scan.ranges, scan.geometry.range_max, protect=self.protect_mask)
 
     def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray, *,
                         ends: tuple[np.ndarray, np.ndarray] | None = None) -> int:
@@ -318,8 +318,8 @@ class GlassMapper:
 
 def end_points(laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
                use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Map-frame end points x, y (m) of the beams ``use`` (n,) bool, given the laser pose (3,) in the map frame,
-    the beam angles (n,) rad in the laser frame and the ranges (n,) m."""
+    """Map-frame end points x, y (m) of the beams ``use`` (n,) bool, given the laser pose (3,) in the map
+    frame, the beam angles (n,) rad in the laser frame and the ranges (n,) m."""
     ang = laser_pose[2] + angles[use]
     rr = ranges[use]
     return laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)
