@@ -85,6 +85,8 @@ class MappingConfig:
     map_frame: str = setting("map", "map frame id")
     registration: str = setting("robust", "glass registration: direct | robust")
     window: int = setting(3, "robust registration window k (3 or 5)")
+    registration_sigma: str = setting("map", "registration sigma from the pose's covariance relative to the 'map' "
+                                      "built so far, or relative to the map frame's 'anchor' (the reported one)")
     aggregation: str = setting("scan", "evidence aggregation per cell: scan | beam")
     decay_reference: str = setting("cell", "eq. 6 decay from the nearest occupied 'cell' or the beam 'endpoint'")
     occupancy_update: str = setting("mapper", "who integrates each scan into the occupancy grid at the corrected "
@@ -171,6 +173,8 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.registration must be direct or robust, got {m.registration!r}")
         if m.window not in (3, 5):
             raise ConfigError(f"mapping.window must be 3 or 5, got {m.window}")
+        if m.registration_sigma not in ("map", "anchor"):
+            raise ConfigError(f"mapping.registration_sigma must be map or anchor, got {m.registration_sigma!r}")
         if m.aggregation not in ("scan", "beam"):
             raise ConfigError(f"mapping.aggregation must be scan or beam, got {m.aggregation!r}")
         if m.decay_reference not in ("cell", "endpoint"):

@@ -28,7 +28,9 @@ class MappingProcessor:
     happens once per key scan, after matching, at the corrected laser pose. Key scans are chosen by the
     estimator's motion filter (``EstimatorConfig.keyframe_*``: moved >= 5 cm or turned >= 2 deg since the
     last key scan, or 20 scans since it); every scan still gets a pose + covariance and the glass path
-    (p(glass) per beam, glass hits, registration and glass-map update)."""
+    (p(glass) per beam, glass hits, registration and glass-map update). The registration sigma comes from
+    ``mapping.registration_sigma`` (:func:`~glassmap.pose.corrected.online_sigma`: by default the pose's
+    covariance relative to the map it registers on)."""
 
     def __init__(self, mapping: MappingConfig, *, estimator_config=None, mapper_config=None) -> None:
         from dataclasses import replace
@@ -52,6 +54,7 @@ class MappingProcessor:
                                              weights=mapping.classifier_weights or None)
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"
+        self.sigma_source = mapping.registration_sigma
         self.graph = None  # the pose-graph worker (mapping.loop_closure)
         if mapping.loop_closure:
             from glassmap.pose.backend import BackEndConfig
@@ -94,6 +97,8 @@ class MappingProcessor:
                                   echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))
 
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:
+        from glassmap.pose.corrected import online_sigma  # glassmap.pose is imported lazily in this module
+
         c0 = time.thread_time()
         t0 = time.perf_counter()
         for o in odometry:
@@ -103,7 +108,7 @@ class MappingProcessor:
         est = self.estimator.update(scan)
         t1 = time.perf_counter()
         laser_pose = self.estimator.laser_pose(est)
-        sigma = self.estimator.registration_sigma(est, scan.ranges)
+        sigma = online_sigma(self.estimator, est, scan.ranges, self.sigma_source)
         key = self.estimator.stats.last_keyframe
         beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key)
         t2 = time.perf_counter()

@@ -84,6 +84,11 @@ def register(subparsers) -> None:
     x.add_argument("--methods", default="direct,robust3,robust5",
                    help="registration methods (default: direct,robust3,robust5)")
     x.add_argument("--glass-every", type=int, default=4, help="map glass on every k-th scan (default: 4 = 10 Hz)")
+    x.add_argument("--sigma", default="map",
+                   help="where the registration sigma comes from: map (the pose's covariance relative to the map "
+                   "built so far, the default) or anchor (the reported covariance, relative to the map frame's "
+                   "anchor); a list (map,anchor) also builds online maps <method>~<source> of the robust methods "
+                   "with the others, on the same trials")
     add_loop_closure(x, default=False)
     add_out(x, "out/pose")
     x.set_defaults(func=_experiment)
@@ -220,8 +225,9 @@ def _experiment(args: argparse.Namespace) -> int:
 
     seeds = args.seeds
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    sigmas = tuple(m.strip() for m in args.sigma.split(",") if m.strip())
     cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every,
-                            loop_closure=args.loop_closure)
+                            sigmas=sigmas, loop_closure=args.loop_closure)
     clf = GlassClassifier.load_default()
     rows = []
     for s in tqdm(seeds, desc="online trials", unit="trial"):
@@ -243,8 +249,10 @@ def _experiment(args: argparse.Namespace) -> int:
              f"{np.mean(nees):.2f}, median registration sigma {100 * np.median(sig):.1f} cm")
     from glassmap.pose.experiment import margins
 
-    for m in margins(summary, methods[0], "robust3") if "robust3" in methods and methods[0] != "robust3" else []:
-        text += (f"\nrobust3 vs {m['base']} ({m['maps']} maps): gain in mean {100 * m['mean_gain']:+.1f} %, worst "
+    compared = [margins(summary, methods[0], "robust3")]
+    compared += [margins(summary, methods[0], f"robust3~{src}", ("",)) for src in sigmas[1:]]
+    for m in [m for ms in compared for m in ms] if "robust3" in methods and methods[0] != "robust3" else []:
+        text += (f"\n{m['other']} vs {m['base']} ({m['maps']} maps): gain in mean {100 * m['mean_gain']:+.1f} %, worst "
                  f"{100 * m['worst_gain']:+.1f} %, std {100 * m['std_gain']:+.1f} % -> "
                  f"{'beats it in all three' if m['beats'] else 'does not beat it in all three'}")
     if args.loop_closure:

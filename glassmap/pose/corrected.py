@@ -11,6 +11,7 @@ far), not the uncertainty relative to the map frame's anchor, which a corrected 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -33,6 +34,23 @@ def relative_sigma(key: KeyScan, ranges: np.ndarray, range_sigma: float = 0.01,
     r = np.where(np.isfinite(r_in), r_in, 0.0)
     sr = range_sigma + range_sigma_per_m * r
     return np.where(np.isfinite(r_in), np.sqrt(sxy2 + r * r * sth2 + sr * sr), np.nan)
+
+
+SIGMA_SOURCES = ("map", "anchor")
+"""Where an online registration sigma comes from: "map", the current pose's covariance relative to the map
+built so far (``PoseEstimator.scan_relative_covariance``, the filter's, as ``KeyScan.cov``); "anchor", the
+reported covariance (relative to the map frame's anchor: the filter's plus the matched map region's)."""
+
+
+def online_sigma(estimator, estimate, ranges: np.ndarray, source: str = "map") -> np.ndarray:
+    """Per-beam registration sigma (m) of the scan the ``estimator`` (a ``PoseEstimator``) has just placed at
+    ``estimate``, from the covariance ``source`` (:data:`SIGMA_SOURCES`); the formula is
+    ``PoseEstimator.registration_sigma``'s."""
+    if source == "map":
+        estimate = replace(estimate, covariance=estimator.scan_relative_covariance())
+    elif source != "anchor":
+        raise ValueError(f"registration sigma source must be one of {SIGMA_SOURCES}, got {source!r}")
+    return estimator.registration_sigma(estimate, ranges)
 
 
 class NoClassifier:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from glassmap.pose.backend import BackEndConfig
+from glassmap.pose.corrected import online_sigma
 from glassmap.pose.estimator import EstimatorConfig
 from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, metrics, run_estimator
 
@@ -32,8 +33,12 @@ class OnlineTrialConfig:
     """world / route: simulator world and route (None = default route); methods: names from
     ``glassmap.eval.trial.METHODS``; glass_every: map glass on every k-th scan (4 -> 10 Hz, the glass-map
     experiment's rate); eval_radius (m); estimator: the pose estimator's settings; sigma_scale: multiply
-    the registration sigma (1 = as reported); loop_closure: also run the pose-graph back end (``backend``)
-    and score the maps rebuilt from the key scans with and without its correction (module docstring)."""
+    the registration sigma (1 = as reported); sigmas: where the online registration sigma comes from
+    (:data:`~glassmap.pose.corrected.SIGMA_SOURCES`): the first feeds the methods' maps, each further one
+    adds online maps ``<method>~<source>`` of the methods whose registration reads the sigma (robust; direct
+    does not, so the trajectory and the first method's map are the same); loop_closure: also run the
+    pose-graph back end (``backend``) and score the maps rebuilt from the key scans with and without its
+    correction (module docstring)."""
 
     world: str = "office"
     route: str | None = None
@@ -42,6 +47,7 @@ class OnlineTrialConfig:
     eval_radius: float = 1.5
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     sigma_scale: float = 1.0
+    sigmas: tuple[str, ...] = ("map",)
     loop_closure: bool = False
     backend: BackEndConfig = field(default_factory=BackEndConfig)
 
@@ -83,6 +89,11 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
                     raise ValueError(f"method {m!r} needs its own occupancy grid; the online experiment shares "
                                      "the estimator's grid (use direct / robust3 / robust5 / -endpoint / -beam)")
                 mappers[m] = GlassMapper(est.occupancy, mc, classifier=classifier)
+            for src in cfg.sigmas[1:]:
+                for m in cfg.methods:
+                    if METHODS[m]["registration"] != "direct":
+                        mappers[f"{m}~{src}"] = GlassMapper(est.occupancy, MapperConfig(
+                            layer=f"glass_{m}~{src}", **METHODS[m]), classifier=classifier)
             state["mappers"] = mappers
             first = next(iter(mappers.values()))
             est.protect_mask_fn = first.protect_mask
@@ -106,14 +117,15 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
         if i % cfg.glass_every:
             return
         lp = est.laser_pose(est_pose)
-        sigma = cfg.sigma_scale * est.registration_sigma(est_pose, scan.ranges)
-        sigmas.append(float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else np.nan)
+        sigma = {src: cfg.sigma_scale * online_sigma(est, est_pose, scan.ranges, src) for src in cfg.sigmas}
+        s0 = sigma[cfg.sigmas[0]]
+        sigmas.append(float(np.nanmedian(s0)) if np.isfinite(s0).any() else np.nan)
         if beams is None:
             beams, use = first.classify(scan)
         first.mark_glass_hits(beams, use, scan, lp)
-        use = use & np.isfinite(sigma)
-        for mp in mappers.values():
-            mp.register(beams, use, scan, lp, sigma)
+        for name, mp in mappers.items():
+            s = sigma[name.split("~")[1] if "~" in name else cfg.sigmas[0]]
+            mp.register(beams, use & np.isfinite(s), scan, lp, s)
 
     from glassmap.grid import MapGrid, OccupancyGrid
 

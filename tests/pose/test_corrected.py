@@ -44,3 +44,29 @@ def test_rebuild_on_a_given_grid_keeps_its_origin_and_never_classifies():
     assert occ.occupied().sum() > 50
     with pytest.raises(RuntimeError, match="p\\(glass\\) from the key scans"):
         NoClassifier().predict_scan(keys[0].scan)
+
+
+def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
+    """A robot standing in a room, its map placed 5 cm / 1 deg uncertain relative to the map frame's anchor:
+    the "anchor" sigma counts that, the "map" sigma (the pose relative to the map it registers on) does not."""
+    from glassmap.pose import EstimatorConfig, PoseEstimator
+    from glassmap.pose.corrected import online_sigma
+    from glassmap.types import Odometry
+    from tests.pose.synth import make_scan, room_with_corner
+
+    est = PoseEstimator(EstimatorConfig(initial_pose=(-1.5, -1.0, 0.0), laser_mount=(0.0, 0.0, 0.0)))
+    rng = np.random.default_rng(0)
+    for k in range(5):
+        est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
+        e = est.update(make_scan(room_with_corner(), np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01,
+                                 rng=rng))
+    est.map_cov = np.diag([0.05 ** 2, 0.05 ** 2, np.radians(1.0) ** 2])
+    e = est.estimate()
+    r = np.array([1.0, 8.0, np.inf])
+    anchor, to_map = online_sigma(est, e, r, "anchor"), online_sigma(est, e, r, "map")
+    np.testing.assert_array_equal(anchor, est.registration_sigma(e, r))  # the reported covariance's
+    assert np.isnan(to_map[2]) and np.isnan(anchor[2])
+    assert anchor[0] > 0.05 and anchor[1] > np.radians(1.0) * 8.0  # the map's 5 cm and 1 deg are in it
+    assert to_map[0] < 0.04 and to_map[1] < 0.5 * anchor[1]
+    with pytest.raises(ValueError, match="map"):
+        online_sigma(est, e, r, "world")

@@ -23,10 +23,12 @@ def test_margins_are_relative_gains_and_beating_needs_all_three():
 
 @pytest.mark.slow
 def test_trial_with_loop_closure_scores_maps_rebuilt_at_front_end_and_optimised_poses():
-    cfg = OnlineTrialConfig(world="glass-corridor", route=None, methods=("direct", "robust3"), loop_closure=True)
+    cfg = OnlineTrialConfig(world="glass-corridor", route=None, methods=("direct", "robust3"), loop_closure=True,
+                            sigmas=("map", "anchor"))
     rows = run_online_trial(cfg, 0)
     names = [r["method"] for r in rows]
-    assert names == ["direct", "robust3", "direct@keys", "robust3@keys", "direct@keys+lc", "robust3@keys+lc"]
+    assert names == ["direct", "robust3", "robust3~anchor", "direct@keys", "robust3@keys", "direct@keys+lc",
+                     "robust3@keys+lc"]  # direct does not read the sigma: no direct~anchor
     for r in rows:
         assert 0.0 <= r["error"] < 0.5 and r["n_cells"] > 100  # the corridor's glass walls scored
         assert r["key_scans"] > 10 and np.isfinite(r["keys_ate"]) and np.isfinite(r["keys_lc_ate"])

@@ -57,6 +57,7 @@ def test_serial_laser_and_tcp_base():
     ("[laser]\nip_prot = 1\n", "unknown key laser.ip_prot"),
     ("[laser]\nip_port = \"ten\"\n", "laser.ip_port: expected int"),
     ("[mapping]\nwindow = 4\n", "mapping.window must be 3 or 5"),
+    ("[mapping]\nregistration_sigma = \"world\"\n", "mapping.registration_sigma must be map or anchor"),
     ("[laser\n", r"robot.toml: .*line 1"),
 ])
 def test_bad_files_name_file_key_and_problem(tmp_path, text, match):
