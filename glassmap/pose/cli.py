@@ -93,6 +93,13 @@ def register(subparsers) -> None:
     add_out(x, "out/pose")
     x.set_defaults(func=_experiment)
 
+    g = sub.add_parser("margins", help="robust3's margins over direct per world and over worlds, from experiment CSVs",
+                       description="Read the CSVs of `glassmap pose experiment` (one or more worlds) and print, per "
+                       "world and kind of map, robust3's (and robust3~<sigma>'s) gain over direct in mean, worst "
+                       "and std of the error over trials, then over the worlds the mean gain and the worst world's.")
+    g.add_argument("csv", nargs="+", help="experiment CSV files")
+    g.set_defaults(func=_margins)
+
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -266,4 +273,29 @@ def _experiment(args: argparse.Namespace) -> int:
         f.write(text + "\n")
     print(text)
     print(f"wrote {stem}.csv, {stem}.png, {stem}.txt")
+    return 0
+
+
+def _margins(args: argparse.Namespace) -> int:
+    import csv
+
+    from glassmap.pose.experiment import world_margins
+
+    rows = []
+    for path in args.csv:
+        with open(path, newline="") as f:
+            rows.extend(csv.DictReader(f))
+    others = ["robust3"] + sorted({r["method"] for r in rows if r["method"].startswith("robust3~")})
+    per_world, overall = world_margins(rows, others=tuple(others))
+    print(f"{'world':28s} {'method':15s} {'maps':8s} {'mean':>7s} {'worst':>7s} {'std':>7s}  beats")
+    for m in per_world:
+        print(f"{os.path.splitext(os.path.basename(m['world']))[0]:28s} {m['other']:15s} {m['maps']:8s} "
+              f"{100 * m['mean_gain']:+6.1f}% {100 * m['worst_gain']:+6.1f}% {100 * m['std_gain']:+6.1f}%  "
+              f"{'yes' if m['beats'] else 'no'}")
+    print("over the worlds: mean gain (worst world's gain, that world)")
+    for o in overall:
+        parts = [f"{k} {100 * o[f'{k}_gain']:+.1f} % ({100 * o[f'{k}_gain_worst']:+.1f} %, "
+                 f"{os.path.splitext(os.path.basename(o[f'{k}_gain_worst_world']))[0]})" for k in ("mean", "worst", "std")]
+        print(f"{o['other']} vs direct, {o['maps']} maps, {o['worlds']} worlds: " + "; ".join(parts)
+              + f"; beats direct in all three on {o['beats']} of {o['worlds']}")
     return 0

@@ -213,3 +213,29 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
         out.append(dict(maps=suf.lstrip("@") or "online", base=base, other=other, **{f"{k}_gain": v for k, v in gain.items()},
                         beats=all(b[k] < a[k] for k in ("mean", "worst", "std"))))
     return out
+
+
+def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...] = ("robust3", "robust3~anchor"),
+                  suffixes: tuple[str, ...] = ("", "@keys", "@keys+lc")) -> tuple[list[dict], list[dict]]:
+    """Per world (the rows' ``world``) and per map kind: each of ``others``' margins over ``base``
+    (:func:`margins`); and over the worlds, per (other, maps): the mean margin, the worst world's margin
+    (lowest gain) and that world, and how many worlds it beats ``base`` in mean, worst and std together."""
+    from glassmap.eval.experiment import summarise
+
+    per_world = []
+    for world in dict.fromkeys(r["world"] for r in rows):
+        summary = summarise([r for r in rows if r["world"] == world])
+        for other in others:
+            for m in margins(summary, base, other, suffixes if "~" not in other else ("",)):
+                per_world.append(dict(world=world, **m))
+    overall = []
+    for key in dict.fromkeys((m["other"], m["maps"]) for m in per_world):
+        ms = [m for m in per_world if (m["other"], m["maps"]) == key]
+        row = dict(other=key[0], maps=key[1], worlds=len(ms), beats=sum(m["beats"] for m in ms))
+        for k in ("mean", "worst", "std"):
+            g = np.array([m[f"{k}_gain"] for m in ms])
+            row[f"{k}_gain"] = float(np.nanmean(g))
+            row[f"{k}_gain_worst"] = float(np.nanmin(g))
+            row[f"{k}_gain_worst_world"] = ms[int(np.nanargmin(g))]["world"]
+        overall.append(row)
+    return per_world, overall

@@ -46,3 +46,20 @@ def test_false_closures_are_those_off_the_truth_by_more_than_5_cm_or_1_deg():
     off_yaw = Closure(1, 2, np.array([1.0, 0.0, np.radians(91.5)]), cov, 0.0)
     assert _false_closures([right], truth) == 0
     assert _false_closures([right, off_xy, off_yaw], truth) == 2
+
+
+def test_world_margins_per_world_and_the_worst_world_over_them():
+    from glassmap.pose.experiment import world_margins
+
+    def rows(world, direct, robust):
+        return [dict(world=world, seed=s, method=m, error=e, error_occupied=e, glass_recall=0.9, false_glass_rate=0.0)
+                for s, (d, r) in enumerate(zip(direct, robust)) for m, e in (("direct", d), ("robust3", r))]
+
+    a = rows("a", [0.10, 0.20], [0.09, 0.18])  # robust 10 % lower in every trial
+    b = rows("b", [0.10, 0.10], [0.12, 0.12])  # robust 20 % higher
+    per_world, overall = world_margins(a + b, others=("robust3",))
+    assert [(m["world"], m["maps"]) for m in per_world] == [("a", "online"), ("b", "online")]
+    assert per_world[0]["mean_gain"] == pytest.approx(0.1) and per_world[1]["mean_gain"] == pytest.approx(-0.2)
+    (o,) = overall
+    assert o["mean_gain"] == pytest.approx(-0.05) and o["mean_gain_worst"] == pytest.approx(-0.2)
+    assert o["mean_gain_worst_world"] == "b" and o["worlds"] == 2 and o["beats"] == 1
