@@ -92,6 +92,7 @@ def recorded_config(path: str | Path, base: RuntimeConfig | None = None) -> Runt
     if "mapping" in meta:
         known = {f.name for f in dataclasses.fields(cfg.mapping)}
         values = {k: v for k, v in json.loads(meta["mapping"]).items() if k in known}
+        values.setdefault("registration_sigma", "anchor")  # recorded before the setting: the sigma used then
         cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, **values))
     return cfg
 
