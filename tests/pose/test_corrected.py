@@ -58,8 +58,7 @@ def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
     rng = np.random.default_rng(0)
     for k in range(5):
         est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
-        e = est.update(make_scan(room_with_corner(), np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01,
-                                 rng=rng))
+        est.update(make_scan(room_with_corner(), np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01, rng=rng))
     est.map_cov = np.diag([0.05 ** 2, 0.05 ** 2, np.radians(1.0) ** 2])
     e = est.estimate()
     r = np.array([1.0, 8.0, np.inf])
