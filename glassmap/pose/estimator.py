@@ -34,6 +34,7 @@ from glassmap.pose.filter import PoseEKF
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points)
+from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
 from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 
@@ -365,10 +366,11 @@ class PoseEstimator:
             if not cfg.integrate:
                 self.occupancy.ensure_scan_extent(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                                   scan.geometry.range_max)
+            end = self._end_points(angles, ranges, scan.geometry.range_max)
             if cfg.map_uncertainty:
-                self.store_map_variance(angles, ranges, scan.geometry.range_max)
+                self.store_map_variance(angles, ranges, scan.geometry.range_max, end=end)
             if cfg.subcell_walls:
-                self._store_hits(angles, ranges, scan.geometry.range_max)
+                self._store_hits(angles, ranges, scan.geometry.range_max, end=end)
         st.t_integrate = time.perf_counter() - t3
         self._key_pose = self.scan_pose()
         self.last_key_scan = KeyScan(
@@ -502,22 +504,26 @@ class PoseEstimator:
             return 0.0
         return float(np.isin(keys, prev).mean())
 
-    def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
-        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls."""
+    def _end_points(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> np.ndarray:
+        """Map-frame end points (n, 2) (m) of the beams with a hit (finite, <= range_max) at the scan's laser
+        pose."""
         hit = np.isfinite(ranges) & (ranges <= range_max)
-        if not hit.any():
+        lp = self.laser_pose_of(self.scan_pose())
+        r = ranges[hit]
+        a = lp[2] + angles[hit]
+        return lp[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+    def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
+                    end: np.ndarray | None = None) -> None:
+        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls;
+        ``end``: the end points (:meth:`_end_points`) if already computed."""
+        if end is None:
+            end = self._end_points(angles, ranges, range_max)
+        if not len(end):
             return
         g = self.occupancy.grid
-        lp = self.laser_pose_of(self.scan_pose())
-        a = lp[2] + angles[hit]
-        xy = lp[:2] + np.stack([ranges[hit] * np.cos(a), ranges[hit] * np.sin(a)], axis=1)
-        cells = g.world_to_cell(xy)
-        ok = g.in_bounds(cells)
-        cells, xy = cells[ok], xy[ok]
-        off = xy - (g.origin + cells * g.resolution)
-        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        for name, vals in zip(HIT_LAYERS, (off[:, 0], off[:, 1], np.ones(len(flat)))):
-            np.add.at(g[name].reshape(-1), flat, vals.astype(np.float32))
+        sx, sy, n = (g[name] for name in HIT_LAYERS)
+        add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
 
     # ------------------------------------------------------------------ map uncertainty
     def matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
@@ -562,7 +568,8 @@ class PoseEstimator:
         out[:2, :2] += region.sys_cov
         return out, region
 
-    def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float) -> None:
+    def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
+                           end: np.ndarray | None = None) -> None:
         """Give the end-point cells of this scan the error model of their placement where its own variance
         (of the cell's position) is smaller than what the cell holds (the best placement is kept).
 
@@ -576,9 +583,11 @@ class PoseEstimator:
         The systematic error of the placement is the region's mean one plus ``map_bias_per_match`` along the
         laser's viewing direction (the bias of this match relative to the region), in the directions the match
         fused only (along a featureless corridor the match says nothing along it, so it adds no bias there; a
-        scan placed by odometry alone adds none); it enters the cell's own variance as its squared length."""
-        hit = np.isfinite(ranges) & (ranges <= range_max)
-        if not hit.any():
+        scan placed by odometry alone adds none); it enters the cell's own variance as its squared length.
+        ``end``: the end points (:meth:`_end_points`) if already computed."""
+        if end is None:
+            end = self._end_points(angles, ranges, range_max)
+        if not len(end):
             return
         g = self.occupancy.grid
         lp = self.laser_pose_of(self.scan_pose())
@@ -591,26 +600,16 @@ class PoseEstimator:
         # the shift per axis: the region's, the filter's, and the spread of the two pivots about the new one
         shift = (reg.shift_var + 0.5 * float(np.trace(p[:2, :2]))
                  + 0.5 * (reg.yaw_var * float(np.sum((reg.pivot - pivot) ** 2)) + pth * float(np.sum((x - pivot) ** 2))))
-        r = ranges[hit]
-        a = lp[2] + angles[hit]
-        end = x + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
-        cells = g.world_to_cell(end)
-        ok = g.in_bounds(cells)
-        cells, end = cells[ok], end[ok]
-        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
         h = self._fused_h
         bias = self.config.map_bias_per_match * np.array([np.cos(lp[2]), np.sin(lp[2]), 0.0])
         if h.shape[0] < 3:  # its projection on the fused directions
             bias = np.linalg.pinv(h) @ (h @ bias) if h.shape[0] else np.zeros(3)
         sys = reg.sys + bias[:2]
-        var = (shift + float(sys @ sys) + vyaw * np.sum((end - pivot) ** 2, axis=1)).astype(np.float32)  # cell's own
-        lay = g[MAP_VAR_LAYER].reshape(-1)
-        before = lay[flat]
-        np.minimum.at(lay, flat, var)
-        upd = flat[lay[flat] < before]  # cells this scan placed better than before
-        for name, val in ((MAP_VAR_YAW_LAYER, vyaw), (MAP_SRC_LAYERS[0], pivot[0]), (MAP_SRC_LAYERS[1], pivot[1]),
-                          (MAP_SRC_LAYERS[2], shift), (MAP_SYS_LAYERS[0], sys[0]), (MAP_SYS_LAYERS[1], sys[1])):
-            g[name].reshape(-1)[upd] = np.float32(val)
+        # the cell's own variance where smaller than before; the cells it fell in take this placement's model
+        vals = np.array([vyaw, pivot[0], pivot[1], shift, sys[0], sys[1]], dtype=np.float32)
+        layers = (g[name] for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER) + MAP_SRC_LAYERS + MAP_SYS_LAYERS)
+        keep_best_placement(*layers, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution),
+                            shift + float(sys @ sys), vyaw, float(pivot[0]), float(pivot[1]), vals)
 
     # ------------------------------------------------------------------ outputs
     def scan_pose(self) -> np.ndarray:
@@ -689,13 +688,11 @@ class PoseEstimator:
         position error moves it rigidly; the three are treated as independent. NaN / inf ranges -> NaN.
         """
         r_in = np.asarray(ranges, dtype=np.float64)
-        r = np.where(np.isfinite(r_in), r_in, 0.0)
         cov = self.laser_covariance(estimate)
         sxy2 = max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0)
         sth2 = max(float(cov[2, 2]), 0.0)
-        sr = self.config.range_sigma + self.config.range_sigma_per_m * r
-        out = np.sqrt(sxy2 + r * r * sth2 + sr * sr)
-        return np.where(np.isfinite(r_in), out, np.nan)
+        return registration_sigmas(r_in.reshape(-1), sxy2, sth2, float(self.config.range_sigma),
+                                   float(self.config.range_sigma_per_m)).reshape(r_in.shape)
 
     # ------------------------------------------------------------------ glass
     def glass_probability_at(self, xy: np.ndarray) -> np.ndarray:

@@ -1,0 +1,90 @@
+"""Compiled per-beam loops of :mod:`glassmap.pose.estimator`, numba ``njit``.
+
+Each kernel does the floating-point operations of the numpy code it replaced in the same order (no
+fast-math; float32 stays float32), so its output is the same to the last bit; the cosines and sines of the
+beams stay in numpy. End points (n, 2) are map-frame (m); a grid cell of an end point is
+``floor((p - origin) / res)`` per axis (as ``MapGrid.world_to_cell``), points off the (h, w) grid are
+skipped. Compiled code is cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from glassmap.jit import njit
+
+_jit = njit(cache=True, nogil=True, error_model="numpy")
+
+
+@_jit
+def registration_sigmas(ranges: np.ndarray, sxy2: float, sth2: float, range_sigma: float,
+                        range_sigma_per_m: float) -> np.ndarray:
+    """sqrt(sxy2 + r^2 sth2 + (range_sigma + range_sigma_per_m r)^2) per beam (m); NaN where r is not finite."""
+    n = ranges.shape[0]
+    out = np.empty(n, np.float64)
+    for i in range(n):
+        r = ranges[i]
+        if np.isfinite(r):
+            sr = range_sigma + range_sigma_per_m * r
+            out[i] = np.sqrt(sxy2 + r * r * sth2 + sr * sr)
+        else:
+            out[i] = np.nan
+    return out
+
+
+@_jit
+def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray, ox: float, oy: float,
+             res: float) -> None:
+    """Add each end point's offset from its cell's corner (m, float32) to ``sx``, ``sy`` and 1 to ``count``
+    ((h, w) float32 layers), in the order of the points."""
+    h, w = count.shape
+    for i in range(end.shape[0]):
+        ix = np.int64(np.floor((end[i, 0] - ox) / res))
+        iy = np.int64(np.floor((end[i, 1] - oy) / res))
+        if ix < 0 or ix >= w or iy < 0 or iy >= h:
+            continue
+        sx[iy, ix] += np.float32(end[i, 0] - (ox + ix * res))
+        sy[iy, ix] += np.float32(end[i, 1] - (oy + iy * res))
+        count[iy, ix] += np.float32(1.0)
+
+
+@_jit
+def keep_best_placement(var: np.ndarray, yaw: np.ndarray, pivot_x: np.ndarray, pivot_y: np.ndarray,
+                        shift: np.ndarray, sys_x: np.ndarray, sys_y: np.ndarray, end: np.ndarray, ox: float,
+                        oy: float, res: float, base: float, vyaw: float, px: float, py: float,
+                        vals: np.ndarray) -> None:
+    """Each end point's cell variance float32(base + vyaw |p - (px, py)|^2) into ``var`` where smaller than
+    the cell held before this scan (np.minimum, NaN propagates), and ``vals`` (6,) float32 into the other
+    six layers of the cells whose variance fell (all (h, w) float32)."""
+    h, w = var.shape
+    n = end.shape[0]
+    cy = np.empty(n, np.int64)
+    cx = np.empty(n, np.int64)
+    before = np.empty(n, np.float32)
+    m = 0
+    for i in range(n):
+        ix = np.int64(np.floor((end[i, 0] - ox) / res))
+        iy = np.int64(np.floor((end[i, 1] - oy) / res))
+        if ix < 0 or ix >= w or iy < 0 or iy >= h:
+            continue
+        cy[m], cx[m] = iy, ix
+        before[m] = var[iy, ix]
+        m += 1
+    for i in range(n):
+        ix = np.int64(np.floor((end[i, 0] - ox) / res))
+        iy = np.int64(np.floor((end[i, 1] - oy) / res))
+        if ix < 0 or ix >= w or iy < 0 or iy >= h:
+            continue
+        dx, dy = end[i, 0] - px, end[i, 1] - py
+        v = np.float32(base + vyaw * (dx * dx + dy * dy))
+        if v < var[iy, ix] or v != v:  # np.minimum: the smaller, or a NaN
+            var[iy, ix] = v
+    for k in range(m):
+        iy, ix = cy[k], cx[k]
+        if var[iy, ix] < before[k]:
+            yaw[iy, ix] = vals[0]
+            pivot_x[iy, ix] = vals[1]
+            pivot_y[iy, ix] = vals[2]
+            shift[iy, ix] = vals[3]
+            sys_x[iy, ix] = vals[4]
+            sys_y[iy, ix] = vals[5]
