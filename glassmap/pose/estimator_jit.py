@@ -88,3 +88,13 @@ def keep_best_placement(var: np.ndarray, yaw: np.ndarray, pivot_x: np.ndarray, p
             shift[iy, ix] = vals[3]
             sys_x[iy, ix] = vals[4]
             sys_y[iy, ix] = vals[5]
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) these kernels now, with the argument types the
+    estimator passes, rather than at the first scan."""
+    lay = [np.zeros((2, 2), np.float32) for _ in range(7)]
+    end = np.zeros((1, 2))
+    registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
+    add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
+    keep_best_placement(*lay, end, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, np.zeros(6, np.float32))

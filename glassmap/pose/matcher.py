@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from glassmap.pose.estimator_jit import warm_up as warm_up_estimator
 from glassmap.pose.field import LikelihoodField
 from glassmap.pose.matcher_jit import cell_values, scaled_squared_distances
 
@@ -413,3 +414,4 @@ def warm_up() -> None:
     m, pts, w, zero = CorrelativeMatcher(), np.zeros((1, 2)), np.ones(1), np.zeros(1, dtype=np.int64)
     m._scores(fld.coarse, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1)
     m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1, bilinear=True)
+    warm_up_estimator()  # and the estimator's per-beam loops, which the first scan would load
