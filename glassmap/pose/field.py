@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from glassmap.grid import OccupancyGrid
+from glassmap.pose.field_jit import forward_maximum
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
@@ -188,7 +189,7 @@ class LikelihoodField:
                 vx[pad:-pad, pad:-pad][near] = ex
                 vy[pad:-pad, pad:-pad][near] = ey
         f = p.coarse_factor
-        coarse = ndimage.maximum_filter(field, size=f, origin=-(f // 2), mode="nearest")
+        coarse = forward_maximum(field, f)  # = ndimage.maximum_filter(field, f, origin=-(f // 2), mode="nearest")
         return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied,
                            None if vx is None else vx.ravel(), None if vy is None else vy.ravel())
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from glassmap.pose.estimator_jit import warm_up as warm_up_estimator
 from glassmap.pose.field import LikelihoodField
+from glassmap.pose.field_jit import warm_up as warm_up_field
 from glassmap.pose.matcher_jit import cell_values, scaled_squared_distances
 
 
@@ -414,4 +415,5 @@ def warm_up() -> None:
     m, pts, w, zero = CorrelativeMatcher(), np.zeros((1, 2)), np.ones(1), np.zeros(1, dtype=np.int64)
     m._scores(fld.coarse, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1)
     m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1, bilinear=True)
-    warm_up_estimator()  # and the estimator's per-beam loops, which the first scan would load
+    warm_up_estimator()  # and the estimator's per-beam loops and the field's maximum filter, which the first
+    warm_up_field()  # scan and the first field rebuild would load
