@@ -29,12 +29,12 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
+from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points)
-from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
 from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 

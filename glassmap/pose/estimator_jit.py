@@ -61,24 +61,21 @@ def keep_best_placement(var: np.ndarray, yaw: np.ndarray, pivot_x: np.ndarray, p
     cy = np.empty(n, np.int64)
     cx = np.empty(n, np.int64)
     before = np.empty(n, np.float32)
-    m = 0
-    for i in range(n):
-        ix = np.int64(np.floor((end[i, 0] - ox) / res))
-        iy = np.int64(np.floor((end[i, 1] - oy) / res))
-        if ix < 0 or ix >= w or iy < 0 or iy >= h:
-            continue
-        cy[m], cx[m] = iy, ix
-        before[m] = var[iy, ix]
-        m += 1
+    cell_var = np.empty(n, np.float32)
+    m = 0  # the points on the grid
     for i in range(n):
         ix = np.int64(np.floor((end[i, 0] - ox) / res))
         iy = np.int64(np.floor((end[i, 1] - oy) / res))
         if ix < 0 or ix >= w or iy < 0 or iy >= h:
             continue
         dx, dy = end[i, 0] - px, end[i, 1] - py
-        v = np.float32(base + vyaw * (dx * dx + dy * dy))
-        if v < var[iy, ix] or v != v:  # np.minimum: the smaller, or a NaN
-            var[iy, ix] = v
+        cy[m], cx[m], before[m] = iy, ix, var[iy, ix]
+        cell_var[m] = np.float32(base + vyaw * (dx * dx + dy * dy))
+        m += 1
+    for k in range(m):
+        v = cell_var[k]
+        if v < var[cy[k], cx[k]] or v != v:  # np.minimum: the smaller, or a NaN
+            var[cy[k], cx[k]] = v
     for k in range(m):
         iy, ix = cy[k], cx[k]
         if var[iy, ix] < before[k]:
