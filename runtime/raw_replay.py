@@ -20,18 +20,19 @@ decoder.
 from __future__ import annotations
 
 import heapq
+import itertools
 import logging
+from collections import deque
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from drivers.capture import Capture
 from drivers.hokuyo.session import HokuyoSession
 from drivers.pioneer.errors import DecodeError
 from drivers.pioneer.packets import SYNC0, SYNC1, SYNC2, Cmd, build_packet, command
 from drivers.pioneer.session import PioneerSession
 from drivers.pioneer.sip import decode_sync2
 from glassmap.types import Odometry, Scan
-from runtime.readers import ReplayInputError, read_captures
+from runtime.readers import RawChunk, ReplayInputError, iter_raw_chunks
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ class PioneerReplay:
     The recording does not mark connections, and a SYNC0 written by the host is byte for byte a PULSE
     keep-alive. A handshake is therefore recognised (1) from ``tx_chunks``, all the host's writes, when
     given: a SYNC0 followed by SYNC1 (the robot answered) or by a lone CLOSE (the robot was still open);
-    (2) from the robot's side: a SYNC0 echo, which a robot sends only in a handshake; (3) a lone CLOSE
+    (or from ``next_tx`` given to :meth:`tx`); (2) from the robot's side: a SYNC0 echo, which a robot sends only in a handshake; (3) a lone CLOSE
     written while open. From a handshake's start to the robot's SYNC2 reply packets are not handled, as
     on a live link; a handshake after an open link starts a new link (a reconnection).
     time_scale / model: the live client's (recorded in the metadata as ``base_time_scale``, ``base_model``).
@@ -77,8 +78,11 @@ class PioneerReplay:
         self._starts = {i for i, d in enumerate(txs[:-1]) if d == _SYNC0 and txs[i + 1] in (_SYNC1, _CLOSE)}
         self._n_tx = 0
 
-    def tx(self, t: float, data: bytes) -> None:
-        if data == _CLOSE or self._n_tx in self._starts:
+    def tx(self, t: float, data: bytes, next_tx: bytes | None = None) -> None:
+        """Host -> robot bytes written at host time ``t``; ``next_tx``: the host's next write, when the
+        writes come one at a time instead of as ``tx_chunks``."""
+        start = self._n_tx in self._starts or (data == _SYNC0 and next_tx in (_SYNC1, _CLOSE))
+        if data == _CLOSE or start:
             self._handshake()
         self._n_tx += 1
 
@@ -104,35 +108,80 @@ class PioneerReplay:
         return out
 
 
-def _events(cap: Capture, device: str) -> Iterator[tuple[float, int, str, str, bytes]]:
-    import json
+class _Demux:
+    """One pass over a recording's raw chunks split into a stream per device; reading goes only as far ahead
+    as a stream's consumer needs (the other devices' chunks read meanwhile wait in their queues)."""
 
-    t0 = float(json.loads(cap.note or "{}").get("t0", 0.0))
-    for i, c in enumerate(cap.chunks):
-        yield (t0 + c.t, i, device, c.direction, c.data)
+    def __init__(self, chunks: Iterator[RawChunk], devices: Sequence[str]) -> None:
+        self._chunks = chunks
+        self._queues: dict[str, deque[RawChunk]] = {d: deque() for d in devices}
+
+    def _pull(self) -> bool:
+        for c in self._chunks:
+            if (q := self._queues.get(c.device)) is not None:
+                q.append(c)
+                return True
+        return False
+
+    def stream(self, device: str) -> Iterator[RawChunk]:
+        q = self._queues[device]
+        while q or self._pull():
+            if q:
+                yield q.popleft()
+
+
+Event = tuple[float, int, str, str, bytes, "bytes | None"]  # host time, index, device, direction, data, next tx
+
+
+def _events(chunks: Iterator[RawChunk]) -> Iterator[Event]:
+    """A device's chunks as merge keys: host time as the capture format gives it back (first chunk's time +
+    time since the first chunk), then the chunk's index; next tx: None (see :func:`_with_next_tx`)."""
+    t0 = None
+    for i, c in enumerate(chunks):
+        t0 = c.host_time if t0 is None else t0
+        yield (t0 + (c.host_time - t0), i, c.device, c.direction, c.data, None)
+
+
+def _with_next_tx(events: Iterator[Event]) -> Iterator[Event]:
+    """``events`` with each tx event carrying the data of the device's next tx (None for the last), which
+    :meth:`PioneerReplay.tx` needs to recognise a handshake; the rx events after a tx wait with it."""
+    held: list[Event] = []
+    for ev in events:
+        if ev[3] == "tx" and held:
+            yield held[0][:5] + (ev[4],)
+            yield from held[1:]
+            held = []
+        if ev[3] == "tx" or held:
+            held.append(ev)
+        else:
+            yield ev
+    yield from held
 
 
 def iter_raw(path: str | Path) -> Iterator[Scan | Odometry]:
     """Scans and odometry decoded again from the raw bytes of a glassmap recording, in arrival order
-    (host time of the reads), stamped like the live clients stamped them."""
-    caps = read_captures(path)
-    if "laser" not in caps:
-        raise ReplayInputError(f"{path}: no raw laser bytes (/raw/laser); record with output.record_raw = true "
-                               "or replay the decoded messages (--source messages)")
+    (host time of the reads), stamped like the live clients stamped them. The recording is read once, as
+    the replay goes (not held in memory)."""
     from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
     from runtime.readers import read_metadata
 
+    demux = _Demux(iter_raw_chunks(path), ("laser", "base"))
+    laser_events = _events(demux.stream("laser"))
+    first = next(laser_events, None)
+    if first is None:
+        raise ReplayInputError(f"{path}: no raw laser bytes (/raw/laser); record with output.record_raw = true "
+                               "or replay the decoded messages (--source messages)")
     meta = read_metadata(path)
     tb = TimeBase(int(meta.get("time_offset_ns", "0")))
     laser = HokuyoReplay()
-    base_tx = [c.data for c in caps["base"].chunks if c.direction == "tx"] if "base" in caps else []
-    base = PioneerReplay(float(meta.get("base_time_scale", "1")), meta.get("base_model") or None, base_tx)
-    streams = [_events(caps["laser"], "laser")]
-    if "base" in caps:
-        streams.append(_events(caps["base"], "base"))
-    for t, _, dev, direction, data in heapq.merge(*streams):
+    base = PioneerReplay(float(meta.get("base_time_scale", "1")), meta.get("base_model") or None)
+    streams = (itertools.chain((first,), laser_events), _with_next_tx(_events(demux.stream("base"))))
+    for t, _, dev, direction, data, next_tx in heapq.merge(*streams):
         if direction == "tx":
-            (laser if dev == "laser" else base).tx(t, data)
+            if dev == "laser":
+                laser.tx(t, data)
+            else:
+                base.tx(t, data, next_tx)
         elif dev == "laser":
             for scan in laser.rx(t, data):
                 yield as_recorded_scan(scan, tb)

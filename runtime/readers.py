@@ -4,8 +4,8 @@ Every reader yields the same things in time order: :class:`glassmap.types.Scan` 
 :class:`glassmap.types.Odometry` (odom frame), stamped in seconds. glassmap recordings give back the exact
 host monotonic stamps of the live run (the recording stores the clock offset); other files give their
 header stamps in seconds. Odometry comes from nav_msgs/Odometry, or else from /tf ``odom -> base`` transforms.
-Raw device bytes (glassmap recordings only) come out as :class:`drivers.capture.Capture` objects through
-:func:`read_captures`.
+Raw device bytes (glassmap recordings only) come out chunk by chunk through :func:`iter_raw_chunks`, or as
+:class:`drivers.capture.Capture` objects through :func:`read_captures`.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -173,22 +174,40 @@ def _iter_anyreader(path: Path, scan_topic: str | None, odom_topic: str | None) 
         reader.close()
 
 
-def read_captures(path: str | Path) -> dict[str, Capture]:
-    """The raw device bytes of a glassmap recording as captures, by device ('laser', 'base').
+@dataclass(frozen=True)
+class RawChunk:
+    """One recorded read or write of a device link: ``device`` ('laser', 'base'), ``host_time`` (s, the live
+    run's host clock), ``direction`` ('tx' host -> device, 'rx' device -> host), ``url`` of the link, ``data``."""
 
-    Chunk times are seconds since the device's first chunk (the capture format); the absolute host time
-    of the first chunk is in ``capture.note`` as JSON ``{"t0": host_seconds, "url": ...}``.
-    """
+    device: str
+    host_time: float
+    direction: str
+    url: str
+    data: bytes
+
+
+def iter_raw_chunks(path: str | Path) -> Iterator[RawChunk]:
+    """The raw device bytes of a glassmap recording (/raw/* messages), one chunk at a time in file order."""
     ts = typestore()
-    caps: dict[str, Capture] = {}
-    t0: dict[str, float] = {}
     for r in iter_mcap_raw(path):
         if r.msgtype != RAW_BYTES_TYPE:
             continue
         msg = ts.deserialize_cdr(r.data, r.msgtype)
-        dev = msg.header.frame_id
-        if dev not in caps:
-            caps[dev] = Capture(device=dev, note=json.dumps({"t0": msg.host_time, "url": msg.url}))
-            t0[dev] = msg.host_time
-        caps[dev].chunks.append(Chunk(msg.host_time - t0[dev], msg.direction, bytes(msg.data)))
+        yield RawChunk(msg.header.frame_id, msg.host_time, msg.direction, msg.url, bytes(msg.data))
+
+
+def read_captures(path: str | Path) -> dict[str, Capture]:
+    """The raw device bytes of a glassmap recording as captures, by device ('laser', 'base'); all in memory
+    (a replay streams them instead: :func:`iter_raw_chunks`).
+
+    Chunk times are seconds since the device's first chunk (the capture format); the absolute host time
+    of the first chunk is in ``capture.note`` as JSON ``{"t0": host_seconds, "url": ...}``.
+    """
+    caps: dict[str, Capture] = {}
+    t0: dict[str, float] = {}
+    for c in iter_raw_chunks(path):
+        if c.device not in caps:
+            caps[c.device] = Capture(device=c.device, note=json.dumps({"t0": c.host_time, "url": c.url}))
+            t0[c.device] = c.host_time
+        caps[c.device].chunks.append(Chunk(c.host_time - t0[c.device], c.direction, c.data))
     return caps
