@@ -107,3 +107,19 @@ def map_messages(maps: MapCopy, stamp_ns: int, frame_id: str) -> tuple[bytes, by
     occ = M.occupancy_grid_msg(maps.occupancy.probability(), origin, res, stamp_ns, frame_id)
     glass = M.glass_grid_msg(maps.confidence_map(), origin, res, stamp_ns, frame_id)
     return (bytes(ts.serialize_cdr(occ, M.TOPICS["/map"])), bytes(ts.serialize_cdr(glass, M.TOPICS["/glass/map"])))
+
+
+def export_in_child(maps: list[MapCopy], out_dir: str, stems: list[str]) -> list[dict[str, str]]:
+    """``maps[k].export(out_dir, stems[k])`` (PNG, .npy + .json, PGM + YAML) in a new spawned process, so that
+    the PNG's matplotlib is never loaded into this one (the replay's peak memory); in this process, with a
+    warning, when no process can be started. Returns the paths; raises what the exports raise (OSError)."""
+    try:
+        with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            return pool.submit(_export_all, maps, out_dir, stems).result()
+    except (BrokenProcessPool, AssertionError) as exc:  # AssertionError: a daemonic process may have no children
+        log.warning("no process for the map export (%s); exporting in this process", exc or type(exc).__name__)
+        return _export_all(maps, out_dir, stems)
+
+
+def _export_all(maps: list[MapCopy], out_dir: str, stems: list[str]) -> list[dict[str, str]]:
+    return [m.export(out_dir, s) for m, s in zip(maps, stems, strict=True)]

@@ -257,10 +257,17 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     res.pose_graph = proc.finish_graph()
     res.graph_wait = time.perf_counter() - t_graph
     if out_dir:
-        res.exports = proc.export(out_dir, stem)
+        from runtime.map_worker import export_in_child
+
         graph = res.pose_graph
+        maps, stems = [proc.mapper.copy_maps()], [stem]
         if graph is not None and graph.glass is not None:
-            res.exports.update({f"corrected_{k}": v for k, v in graph.glass.export(out_dir, f"{stem}_corrected").items()})
+            maps.append(graph.glass)
+            stems.append(f"{stem}_corrected")
+        exported = export_in_child(maps, out_dir, stems)
+        res.exports = exported[0]
+        if len(exported) > 1:
+            res.exports.update({f"corrected_{k}": v for k, v in exported[1].items()})
         elif graph is not None and graph.grid is not None:
             pgm, yaml = graph.grid.save_pgm_yaml(str(Path(out_dir) / f"{stem}_corrected"))
             res.exports.update(corrected_pgm=pgm, corrected_yaml=yaml)

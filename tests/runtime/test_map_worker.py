@@ -142,3 +142,41 @@ def test_final_maps_are_written_in_the_runtime_when_the_worker_died(tmp_path):
 
     paths = asyncio.run(main())
     assert Path(paths["png"]).is_file() and Path(paths["npy"]).is_file()
+
+
+def test_export_in_child_writes_what_an_export_here_writes(tmp_path):
+    from runtime.map_worker import export_in_child
+
+    maps = small_maps()
+    here = maps.export(str(tmp_path / "here"), "a")
+    there = export_in_child([maps, maps], str(tmp_path / "child"), ["a", "b"])
+    assert [Path(p).name for p in there[1].values()] == [Path(p).name.replace("a", "b", 1) for p in here.values()]
+    for key, path in here.items():
+        assert Path(there[0][key]).read_bytes() == Path(path).read_bytes()
+
+
+def test_export_in_child_falls_back_to_this_process(tmp_path, monkeypatch, caplog):
+    import concurrent.futures
+    from concurrent.futures.process import BrokenProcessPool
+
+    from runtime import map_worker
+
+    class NoProcess(concurrent.futures.ThreadPoolExecutor):
+        def __init__(self, *_a, **_k):
+            super().__init__(1)
+
+        def submit(self, *_a, **_k):
+            raise BrokenProcessPool("no process here")
+
+    monkeypatch.setattr(map_worker.concurrent.futures, "ProcessPoolExecutor", NoProcess)
+    out = map_worker.export_in_child([small_maps()], str(tmp_path), ["m"])
+    assert Path(out[0]["png"]).is_file() and "exporting in this process" in caplog.text
+
+
+def test_export_in_child_raises_what_the_export_raises(tmp_path):
+    from runtime.map_worker import export_in_child
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.raises(OSError):
+        export_in_child([small_maps()], str(blocker / "out"), ["m"])
