@@ -156,7 +156,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     if separate:
         lines.append(f"peak memory (resident, each run's own): {', '.join(peaks)} MiB")
     lines.append(f"peak memory: this process (all its runs) {own:.0f} MiB; largest child process (emulated "
-                 f"devices, map worker) {kids:.0f} MiB")
+                 f"devices, map worker, the replays' map export; a child started late counts this process's "
+                 f"resident set at its fork) {kids:.0f} MiB")
     lines.append("targets (issue 19): replay from raw >= 400 scans/s (10x real time) on one core; live p99 <= 20 ms "
                  "idle, <= 25 ms with one busy process (--load 1), no scan dropped at 40 Hz; runtime peak memory "
                  "<= 300 MiB")
