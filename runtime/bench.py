@@ -102,7 +102,7 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     replay_config = config
-    peaks: list[str] = []
+    peaks: dict[str, float] = {}  # each run's own peak resident set (MiB)
     separate = reset_peak_rss()
     if recording is None:
         from runtime.demo import DemoOptions, run_demo
@@ -119,7 +119,7 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
-        peaks.append(f"live runtime {peak_rss_mib():.0f}")
+        peaks["live runtime"] = peak_rss_mib()
         release_memory()
     for source in ("messages", "raw"):
         separate = separate and reset_peak_rss()
@@ -137,7 +137,7 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
                          f"{r.data_time / total:.1f}x real time with the wait")
             graph.close()
         lines += _stage_lines(r.stages, "")
-        peaks.append(f"replay from {source} {peak_rss_mib():.0f}")
+        peaks[f"replay from {source}"] = peak_rss_mib()
         del r  # its processor (grids, likelihood fields, reference cycles) is gone before the next run starts
         release_memory()
     if stages:
@@ -151,10 +151,12 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             source, t = "messages", stage_profile(str(recording))
         lines.append(f"CPU time per stage, replay of the {source} ({t.scans} scans, {beside}; runtime/stageprof.py):")
         lines.append(t.table())
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # ru_maxrss is the high-water mark since the last reset: the whole process's peak is the largest run's
+    own = max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, *peaks.values()])
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     if separate:
-        lines.append(f"peak memory (resident, each run's own): {', '.join(peaks)} MiB")
+        lines.append("peak memory (resident, each run's own): "
+                     + ", ".join(f"{k} {v:.0f}" for k, v in peaks.items()) + " MiB")
     lines.append(f"peak memory: this process (all its runs) {own:.0f} MiB; largest child process (emulated "
                  f"devices, map worker, the replays' map export; a child started late counts this process's "
                  f"resident set at its fork) {kids:.0f} MiB")
