@@ -62,11 +62,12 @@ class PioneerReplay:
     """Recorded base chunks through a :class:`PioneerSession`.
 
     The recording does not mark connections, and a SYNC0 written by the host is byte for byte a PULSE
-    keep-alive. A handshake is therefore recognised (1) from ``tx_chunks``, all the host's writes, when
-    given: a SYNC0 followed by SYNC1 (the robot answered) or by a lone CLOSE (the robot was still open);
-    (or from ``next_tx`` given to :meth:`tx`); (2) from the robot's side: a SYNC0 echo, which a robot sends only in a handshake; (3) a lone CLOSE
-    written while open. From a handshake's start to the robot's SYNC2 reply packets are not handled, as
-    on a live link; a handshake after an open link starts a new link (a reconnection).
+    keep-alive. A handshake is therefore recognised (1) from the host's writes (``tx_chunks``, all of them,
+    or the next write given to :meth:`tx`): a SYNC0 followed by SYNC1 (the robot answered) or by a lone
+    CLOSE (the robot was still open); (2) from the robot's side: a SYNC0 echo, which a robot sends only in a
+    handshake; (3) a lone CLOSE written while open. From a handshake's start to the robot's SYNC2 reply
+    packets are not handled, as on a live link; a handshake after an open link starts a new link (a
+    reconnection).
     time_scale / model: the live client's (recorded in the metadata as ``base_time_scale``, ``base_model``).
     """
 
