@@ -137,7 +137,3 @@ class MappingProcessor:
         the copy is a ~1 ms memcpy in the processing thread; the conversions and the file writing then do not
         hold up the scans."""
         return self.mapper.copy_maps()
-
-    def export(self, out_dir: str, stem: str = "glass_map") -> dict[str, str]:
-        """Write PNG, .npy, PGM + YAML of the maps (see GlassMapper.export)."""
-        return self.mapper.export(out_dir, stem)
