@@ -37,6 +37,7 @@ class MappingProcessor:
 
         from glassmap.mapping import GlassMapper, MapperConfig
         from glassmap.pose import EstimatorConfig, PoseEstimator
+        from glassmap.pose.corrected import online_sigma
 
         ecfg = estimator_config or EstimatorConfig()
         ecfg = replace(ecfg, laser_mount=(mapping.laser_x, mapping.laser_y, mapping.laser_yaw),
@@ -55,6 +56,7 @@ class MappingProcessor:
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"
         self.sigma_source = mapping.registration_sigma
+        self._online_sigma = online_sigma  # glassmap.pose is imported lazily in this module
         self.graph = None  # the pose-graph worker (mapping.loop_closure)
         if mapping.loop_closure:
             from glassmap.pose.backend import BackEndConfig
@@ -97,8 +99,6 @@ class MappingProcessor:
                                   echoes=echoes, echo_intensities=None if echoes is None else np.zeros_like(echoes)))
 
     def process(self, scan: Scan, odometry: list[Odometry]) -> ScanResult:
-        from glassmap.pose.corrected import online_sigma  # glassmap.pose is imported lazily in this module
-
         c0 = time.thread_time()
         t0 = time.perf_counter()
         for o in odometry:
@@ -108,7 +108,7 @@ class MappingProcessor:
         est = self.estimator.update(scan)
         t1 = time.perf_counter()
         laser_pose = self.estimator.laser_pose(est)
-        sigma = online_sigma(self.estimator, est, scan.ranges, self.sigma_source)
+        sigma = self._online_sigma(self.estimator, est, scan.ranges, self.sigma_source)
         key = self.estimator.stats.last_keyframe
         beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key)
         t2 = time.perf_counter()
