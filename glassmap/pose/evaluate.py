@@ -221,9 +221,11 @@ def _odometry_in_map(run, start: np.ndarray) -> np.ndarray:
 
 
 def _online_glass_hook(est: PoseEstimator, classifier, then):
-    """An on_scan hook running the runtime's glass path (classify, register, update the glass map) on the
-    estimator's grid at the estimated pose, then ``then``."""
+    """An on_scan hook running the runtime's glass path (classify, register with the runtime's default
+    registration sigma, the pose's uncertainty relative to the map built so far; update the glass map) on
+    the estimator's grid at the estimated pose, then ``then``."""
     from glassmap.mapping import GlassMapper
+    from glassmap.pose.corrected import online_sigma
 
     if classifier is None:
         from glassmap.classifier import GlassClassifier
@@ -233,7 +235,7 @@ def _online_glass_hook(est: PoseEstimator, classifier, then):
     est.protect_mask_fn = mapper.protect_mask
 
     def hook(i, scan, e, estimator):
-        sigma = estimator.registration_sigma(e, scan.ranges)
+        sigma = online_sigma(estimator, e, scan.ranges, "map")
         mapper.process(scan, estimator.laser_pose(e), sigma, update_occupancy=False)
         if then is not None:
             then(i, scan, e, estimator)

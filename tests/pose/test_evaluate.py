@@ -17,3 +17,24 @@ def test_late_odometry_and_dropped_scans_keep_the_track_and_the_covariance_hones
     m = metrics(traj, run)
     assert est.stats.lost_events == 0 and m.lost_events == 0
     assert m.gated == 0 and m.inside_95 > 0.85  # the scans ahead of the odometry are held, not diverged
+
+
+def test_online_glass_map_registers_with_the_runtimes_sigma(monkeypatch):
+    """--glass-weighting online builds the glass map as the runtime does by default: the registration sigma is
+    the pose's uncertainty relative to the map built so far (mapping.registration_sigma = map)."""
+    import glassmap.pose.corrected as corrected
+    from runtime.config import MappingConfig
+
+    sources = []
+    real = corrected.online_sigma
+
+    def spy(estimator, estimate, ranges, source="map"):
+        sources.append(source)
+        return real(estimator, estimate, ranges, source)
+
+    monkeypatch.setattr(corrected, "online_sigma", spy)
+    run = simulate_run(load_world("office"), ROUTE, seed=3)
+    traj, est = run_estimator(run, glass_online=True)
+    assert len(sources) == len(traj.stamps)
+    assert set(sources) == {MappingConfig().registration_sigma}
+    assert np.nanmax(est.occupancy.grid["glass"]) > 0.5  # the facade's glass was mapped
