@@ -2,7 +2,10 @@
 and an emulated Hokuyo (loopback TCP) ranging the simulated world from the robot's true laser pose.
 
 Running the devices in a separate process keeps them off the runtime's interpreter (as real hardware is):
-the runtime's event loop and processing thread do not share a GIL with the simulator.
+the runtime's event loop and processing thread do not share a GIL with the simulator. Inside it, the
+Pioneer's controller runs its own event loop in its own thread, as a controller board runs beside the
+laser: its SIP cycle does not wait for the laser's ray casting (compiled, it releases the GIL), so a
+loaded machine makes the emulated laser late, not the controller's SIPs.
 
 Protocol (line-oriented JSON on stdin/stdout):
 - on start the process prints ``{"laser": URL, "base": URL}``;
@@ -22,6 +25,7 @@ import math
 import os
 import signal
 import sys
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,7 +101,8 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
     truth = TruthLog()
 
     def laser_pose(t: float):  # called once per scan, at the pose the scan is ranged from
-        pose = _pose_at(robot, hokuyo.loop_time(t), pioneer.cycle_monotonic, speed)
+        with pioneer.lock:  # the robot and its cycle time as of one controller cycle
+            pose = _pose_at(robot, hokuyo.loop_time(t), pioneer.cycle_monotonic, speed)
         truth.add(t, pose)
         return compose(pose, np.asarray(robot.params.laser_offset, np.float64))
 
@@ -116,8 +121,15 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
         out.write(json.dumps(obj) + "\n")
         out.flush()
 
+    controller = asyncio.new_event_loop()
+    controller_thread = threading.Thread(target=controller.run_forever, name="pioneer-controller", daemon=True)
+    controller_thread.start()
+
+    async def on_controller(coro):
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, controller))
+
     try:
-        base_url = await pioneer.serve_pty()
+        base_url = await on_controller(pioneer.serve_pty())
         laser_url = await hokuyo.serve_tcp(port=0)
         say({"laser": laser_url, "base": base_url})
         reader = asyncio.StreamReader()
@@ -139,13 +151,18 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
             if cmd == "laser-disconnect":
                 await hokuyo.disconnect()
             elif cmd == "base-link-loss":
-                pioneer.link_loss(float(args[0]) if args else None)
+                controller.call_soon_threadsafe(pioneer.link_loss, float(args[0]) if args else None)
             elif cmd == "pose":
-                say({"true_pose": robot.true_pose.tolist()})
+                with pioneer.lock:
+                    say({"true_pose": robot.true_pose.tolist()})
     finally:
         state = {"laser_state": hokuyo.state, "base_open": pioneer.is_open}
         await hokuyo.close()
-        await pioneer.close()
+        await on_controller(pioneer.close())
+        controller.call_soon_threadsafe(controller.stop)
+        controller_thread.join(timeout=5.0)
+        if not controller_thread.is_alive():
+            controller.close()
     if seen_path:
         np.save(seen_path, seen.mask)
     if truth_path:

@@ -34,6 +34,7 @@ import math
 import os
 import random
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -178,6 +179,9 @@ class PioneerEmulator:
         self._rng = random.Random(self.faults.seed)
         self._t0 = time.monotonic()
         self.cycle_monotonic: float | None = None  # time.monotonic() (s) of the cycle the robot was stepped to
+        # held while a cycle steps the robot: a reader on another thread (the devices process's emulated
+        # laser) takes it to see the robot and cycle_monotonic of one cycle
+        self.lock = threading.Lock()
         self._virtual_t: float | None = None  # emulated time when offline (go_offline)
         self._session = _SESSION_OPEN if self.faults.still_open else _SESSION_CLOSED
         self._still_open_pending = self.faults.still_open
@@ -569,11 +573,12 @@ class PioneerEmulator:
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
             skipped = max(int((time.monotonic() - next_t) / period) - 4, 0)  # > 5 periods behind: skip
             next_t += skipped * period
-            self.cycle_monotonic = next_t
             now = self.now()
             dt = (1 + skipped) * self.sip_period
             try:
-                self._cycle(now, dt)
+                with self.lock:
+                    self.cycle_monotonic = next_t
+                    self._cycle(now, dt)
             except Exception:  # keep the controller alive; a bug here must show in the log
                 log.exception("emulator cycle failed")
 
