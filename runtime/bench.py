@@ -37,6 +37,28 @@ def _ms(v) -> str:
     return f"median {np.median(a):6.2f}  p90 {np.percentile(a, 90):6.2f}  p99 {np.percentile(a, 99):6.2f}  ms"
 
 
+def machine_reference() -> str:
+    """The CPU model and the time of a fixed pure-Python workload (3 million additions, best of three), so
+    that figures from different machines can be compared."""
+    import platform
+    import time
+
+    model = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    best = float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        s = 0
+        for i in range(3_000_000):
+            s += i
+        best = min(best, time.perf_counter() - t)
+    return f"machine: {model}, {os.cpu_count()} cores; reference workload (3 M Python additions) {1e3 * best:.0f} ms"
+
+
 def reset_peak_rss() -> bool:
     """Reset this process's peak resident set (VmHWM) to its current size (Linux >= 4.0,
     /proc/self/clear_refs); False where that is not possible (the peaks then include the earlier runs)."""
@@ -97,7 +119,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     from runtime.tuning import release_memory
 
     lc = config is not None and config.mapping.loop_closure
-    lines = [f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
+    lines = [machine_reference() + f" ({beside})",
+             f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
              "(--mapping.loop_closure)"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -19,3 +19,13 @@ def test_the_peak_of_a_later_run_does_not_include_an_earlier_larger_one():
     small = np.ones(8 * 2**20 // 8)
     assert peak_rss_mib() < big_peak - 50
     del small
+
+
+def test_machine_reference_names_the_cpu_and_times_the_workload():
+    import re
+
+    from runtime.bench import machine_reference
+
+    line = machine_reference()
+    m = re.fullmatch(r"machine: (.+), (\d+) cores; reference workload \(3 M Python additions\) (\d+) ms", line)
+    assert m and m.group(1) and int(m.group(2)) >= 1 and int(m.group(3)) > 0
