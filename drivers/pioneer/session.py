@@ -160,7 +160,8 @@ class PioneerSession:
             return None
         if isinstance(msg, StandardSIP):
             arrival = pkt.stamp if pkt.stamp is not None else t
-            return self._on_sip(msg, self.sip_clock.stamp(arrival, self._queued.pop(id(pkt), 0)))
+            cycles = self.tracker.cycles_since_last(msg, self.sip_clock.cycle) if self.tracker is not None else None
+            return self._on_sip(msg, self.sip_clock.stamp(arrival, self._queued.pop(id(pkt), 0), cycles))
         if isinstance(msg, EncoderPacket):
             self.encoders = msg
         elif isinstance(msg, ConfigPacket):

@@ -10,9 +10,12 @@ fixed latency L, which cannot be told apart from it without a clock on the robot
 The index k follows the cycle, not the packet count. SIPs read together with more after them
 (``queued``) are a burst that a stalled host read late, each a cycle before the next: they take the next
 indices, so a stall does not move k. A SIP that arrives at least 0.9 of a cycle after the envelope is
-either late or follows lost SIPs (bad checksum, a pty hiccup, a controller that skipped cycles): it is
-stamped with its arrival, as without the clock, and kept out of the envelope; if the SIP of the next read
-is as many whole cycles late, SIPs were lost and k skips them. A SIP more than half a cycle before the
+either late or follows lost SIPs (bad checksum, a pty hiccup, a controller that skipped cycles). When the
+caller can tell from the SIP's content how many cycles it moves the robot on (``cycles``: its motion since
+the previous SIP over the wheel speeds', see ``OdometryTracker.cycles_since_last``), that decides: k skips
+the lost SIPs, or the SIP is a late one of the next cycle and is stamped on it. Otherwise (the robot too slow
+to tell, when the stamp hardly matters) it is stamped with its arrival, as without the clock, and kept out
+of the envelope; if the SIP of the next read is as many whole cycles late, SIPs were lost and k skips them. A SIP more than half a cycle before the
 envelope means k ran ahead, and k steps back. Until the envelope has a slope a SIP is stamped with its
 arrival. Stamps never exceed the arrival and never go back.
 """
@@ -37,6 +40,7 @@ class SipClock:
             raise ValueError(f"SipClock: cycle and time_scale must be > 0, got {cycle}, {time_scale}")
         self.time_scale = float(time_scale)
         self.gaps = 0  # SIPs found missing (index skipped)
+        self.delayed = 0  # SIPs a cycle or more late that their content placed on the next cycle
         self.rewinds = 0  # times the index ran ahead of the envelope and stepped back
         self.cycle = float(cycle)
         self.reset()
@@ -60,19 +64,20 @@ class SipClock:
         self._last: float | None = None
         self._suspect = (0, -math.inf)  # (cycles late, arrival) of a previous SIP too late to tell
 
-    def stamp(self, arrival: float, queued: int = 0) -> float:
+    def stamp(self, arrival: float, queued: int = 0, cycles: float | None = None) -> float:
         """Host stamp (s) of the next SIP, which arrived at host time ``arrival`` (s) in a read that held
-        ``queued`` more SIPs after it."""
+        ``queued`` more SIPs after it; ``cycles``: how many SIP cycles its content moves the robot on since
+        the previous SIP (None: unknown)."""
         self._index += 1
         t = arrival
-        if not self._mapper.fitted or self._on_cycle(arrival, queued):
+        if not self._mapper.fitted or self._on_cycle(arrival, queued, cycles):
             t = min(self._mapper.observe(self._index * self._guess, arrival), arrival)
         if self._last is not None:
             t = max(t, self._last)
         self._last = t
         return t
 
-    def _on_cycle(self, arrival: float, queued: int) -> bool:
+    def _on_cycle(self, arrival: float, queued: int, cycles: float | None) -> bool:
         """Correct the index for lost SIPs or a run ahead; False if this SIP is too late to tell."""
         period = self.period
         late = (arrival - self._mapper.host_time(self._index * self._guess)) / period  # cycles
@@ -85,6 +90,13 @@ class SipClock:
         behind = math.floor(late + 0.1)
         suspect, self._suspect = self._suspect, (behind, arrival)
         if behind <= 0:
+            return True
+        if cycles is not None:  # its content tells: SIPs lost before it (at most as many as it is late), or late
+            lost = min(max(round(cycles) - 1, 0), behind)
+            self._index += lost
+            self.gaps += lost
+            self.delayed += lost == 0
+            self._suspect = (0, arrival)
             return True
         if behind != suspect[0] or arrival <= suspect[1]:
             return False

@@ -141,3 +141,18 @@ def test_unknown_subclass_names_the_fix():
     assert model_for("P3DX-SH").dist_conv == 1.0
     with pytest.raises(UnsupportedRobotError, match="model='p3dx'"):
         model_for("p3at")
+
+
+def test_a_sips_content_tells_how_many_cycles_it_moves_the_robot_on():
+    """0.4 m/s straight (40 mm per 0.1 s cycle), then turning in place at 1.12 rad/s (73 units per cycle): one
+    cycle, two (a SIP lost between), or too slow to tell."""
+    tr = OdometryTracker(MODELS["p3dx-sh"])
+    assert tr.cycles_since_last(sip(0, lvel=400, rvel=400), 0.1) is None  # nothing to compare with yet
+    tr.update(sip(0, lvel=400, rvel=400), 0.0)
+    assert tr.cycles_since_last(sip(40, lvel=400, rvel=400), 0.1) == pytest.approx(1.0)
+    assert tr.cycles_since_last(sip(80, lvel=400, rvel=400), 0.1) == pytest.approx(2.0)
+    tr.update(sip(40, th=0, lvel=-200, rvel=200), 0.1)  # wheel speeds +-200 mm/s: 1.12 rad/s
+    assert tr.cycles_since_last(sip(40, th=73, lvel=-200, rvel=200), 0.1) == pytest.approx(1.0, abs=0.01)
+    assert tr.cycles_since_last(sip(40, th=146, lvel=-200, rvel=200), 0.1) == pytest.approx(2.0, abs=0.02)
+    tr.update(sip(40, th=146, lvel=0, rvel=0), 0.3)
+    assert tr.cycles_since_last(sip(41, th=146, lvel=5, rvel=5), 0.1) is None  # creeping: too slow to tell

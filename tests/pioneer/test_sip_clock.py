@@ -128,3 +128,25 @@ def test_stamps_are_monotonic_and_never_after_arrival(events, scale):
         s = clock.stamp(t)
         assert last <= s <= t
         last = s
+
+
+def test_the_content_of_a_late_sip_tells_a_late_one_from_lost_ones():
+    """SIP 300 reaches the host 1.6 cycles late on its own (an emulator starved for CPU); SIPs 450-451 are
+    lost. Told from each SIP's motion how many cycles it moves the robot on, the clock stamps the late SIP
+    on its own cycle and the one after the gap on its cycle at once (without: both get their arrival)."""
+    period = 0.1
+    sent, arr = arrivals(700, period, np.random.default_rng(6), jitter=0.01)
+    arr[300] = sent[300] + 1.6 * period
+    arr = np.maximum.accumulate(arr)
+    keep = np.ones(arr.size, bool)
+    keep[[450, 451]] = False
+    cycles = np.ones(arr.size)
+    cycles[452] = 3.0  # the robot moved on three cycles since SIP 449
+    clock = SipClock()
+    out = np.full(arr.size, np.nan)
+    for i in np.flatnonzero(keep):
+        out[i] = clock.stamp(float(arr[i]), 0, float(cycles[i]))
+    err = np.abs(out - sent)
+    assert err[300] < 0.1 * period and err[452] < 0.1 * period
+    assert np.nanmax(err[40:]) < 0.1 * period
+    assert clock.gaps == 2 and clock.delayed >= 1
