@@ -32,6 +32,7 @@ from runtime.messages import (
     typestore,
     yaw_of,
 )
+from runtime.mcap_walk import iter_channel_messages
 from runtime.recorder import iter_mcap_raw
 
 log = logging.getLogger(__name__)
@@ -186,12 +187,16 @@ class RawChunk:
     data: bytes
 
 
+def _is_raw(topic: str, msgtype: str) -> bool:
+    return msgtype == RAW_BYTES_TYPE
+
+
 def iter_raw_chunks(path: str | Path) -> Iterator[RawChunk]:
-    """The raw device bytes of a glassmap recording (/raw/* messages), one chunk at a time in file order."""
+    """The raw device bytes of a glassmap recording (/raw/* messages), one chunk at a time in file order.
+
+    Only the RawBytes messages are read out of the file (:mod:`runtime.mcap_walk`)."""
     ts = typestore()
-    for r in iter_mcap_raw(path):
-        if r.msgtype != RAW_BYTES_TYPE:
-            continue
+    for r in iter_channel_messages(path, _is_raw):
         msg = ts.deserialize_cdr(r.data, r.msgtype)
         yield RawChunk(msg.header.frame_id, msg.host_time, msg.direction, msg.url, bytes(msg.data))
 
