@@ -33,6 +33,7 @@ from runtime.messages import (
     yaw_of,
 )
 from runtime.mcap_walk import iter_channel_messages
+from runtime.raw_cdr import raw_bytes_fields
 from runtime.recorder import iter_mcap_raw
 
 log = logging.getLogger(__name__)
@@ -194,11 +195,15 @@ def _is_raw(topic: str, msgtype: str) -> bool:
 def iter_raw_chunks(path: str | Path) -> Iterator[RawChunk]:
     """The raw device bytes of a glassmap recording (/raw/* messages), one chunk at a time in file order.
 
-    Only the RawBytes messages are read out of the file (:mod:`runtime.mcap_walk`)."""
+    Only the RawBytes messages are read out of the file (:mod:`runtime.mcap_walk`) and decoded
+    (:mod:`runtime.raw_cdr`; rosbags' deserialiser for what that does not decode)."""
     ts = typestore()
     for r in iter_channel_messages(path, _is_raw):
-        msg = ts.deserialize_cdr(r.data, r.msgtype)
-        yield RawChunk(msg.header.frame_id, msg.host_time, msg.direction, msg.url, bytes(msg.data))
+        fields = raw_bytes_fields(r.data, ts.max_sequence_length)
+        if fields is None:
+            msg = ts.deserialize_cdr(r.data, r.msgtype)
+            fields = (msg.header.frame_id, msg.host_time, msg.direction, msg.url, bytes(msg.data))
+        yield RawChunk(*fields)
 
 
 def read_captures(path: str | Path) -> dict[str, Capture]:
