@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.hokuyo.scip_jit import decode_multi, metres
+from drivers.hokuyo.scip_jit import decode_multi, echo_intensities, echo_metres, metres
 from drivers.hokuyo.errors import (
     BadValue,
     ChecksumError,
@@ -315,6 +315,20 @@ def distances_to_metres(mm: np.ndarray, dmin: int, dmax: int) -> np.ndarray:
     r[mm < dmin] = np.nan
     r[(mm == 1) | (mm > dmax)] = np.inf
     return r
+
+
+def further_echoes(multi: np.ndarray, multi_intensities: np.ndarray | None, dmin: int,
+                   dmax: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The echoes after the first of a multi-echo reply: (metres (steps, k - 1) as :func:`distances_to_metres`,
+    intensities (steps, k - 1) float64 with NaN where the echo is absent, or None without intensities)."""
+    if multi.dtype.kind == "i" and multi.ndim == 2 and (multi_intensities is None or (
+            multi_intensities.dtype.kind == "i" and multi_intensities.shape == multi.shape)):
+        return echo_metres(multi, dmin, dmax), \
+            None if multi_intensities is None else echo_intensities(multi, multi_intensities)
+    echoes = distances_to_metres(multi[:, 1:], dmin, dmax)
+    if multi_intensities is None:
+        return echoes, None
+    return echoes, np.where(multi[:, 1:] >= 0, multi_intensities[:, 1:], np.nan)
 
 
 # ------------------------------------------------------------------------------------------------ parser

@@ -28,6 +28,7 @@ from drivers.hokuyo.scip import (
     TimeReply,
     distances_to_metres,
     expected_steps,
+    further_echoes,
 )
 from glassmap.types import LaserGeometry, Scan
 
@@ -108,9 +109,7 @@ def scan_from_reply(reply: ScanReply, params: SensorParams, geometry: LaserGeome
     further ones, shape (n, 2), NaN where a step had fewer echoes."""
     echoes = echo_int = None
     if reply.multi is not None:
-        echoes = distances_to_metres(reply.multi[:, 1:], params.dmin, params.dmax)
-        if reply.multi_intensities is not None:
-            echo_int = np.where(reply.multi[:, 1:] >= 0, reply.multi_intensities[:, 1:], np.nan)
+        echoes, echo_int = further_echoes(reply.multi, reply.multi_intensities, params.dmin, params.dmax)
     return Scan(stamp=stamp, ranges=distances_to_metres(reply.distances, params.dmin, params.dmax),
                 intensities=None if reply.intensities is None else reply.intensities.astype(np.float64),
                 geometry=geometry, sensor_stamp=sensor_stamp, seq=seq, echoes=echoes, echo_intensities=echo_int)

@@ -34,6 +34,7 @@ from drivers.hokuyo.scip import (
     encode_reply,
     encode_scan_payload,
     encode_values,
+    further_echoes,
     scan_params,
 )
 from tests.hokuyo.vectors import PP_REPLY
@@ -207,6 +208,28 @@ def test_compiled_conversion_equals_the_numpy_one_to_the_bit():
         assert got.shape == a.shape and got.dtype == np.float64
         np.testing.assert_array_equal(got, want)
 
+
+
+def test_further_echoes_compiled_equal_the_numpy_ones_to_the_bit():
+    """The echoes after the first (drivers/hokuyo/scip_jit.py) as the column slice through numpy gives them:
+    metres as distances_to_metres, intensities NaN where the echo is absent."""
+    rng = np.random.default_rng(6)
+    mm = rng.integers(-1, 70000, (1081, 3)).astype(np.int32)
+    mm[rng.random(mm.shape) < 0.3] = -1
+    mm[rng.random(mm.shape) < 0.05] = 1
+    inten = rng.integers(0, 2**20, mm.shape).astype(np.int32)
+    for m, i in ((mm, inten), (mm, None), (mm[:, :2], inten[:, :2]), (mm[:, :1], inten[:, :1]),
+                 (np.zeros((0, 3), np.int32), np.zeros((0, 3), np.int32)), (mm.astype(np.float64), inten)):
+        echoes, echo_int = further_echoes(m, i, 23, 60000)
+        want = distances_to_metres(m[:, 1:].astype(np.float64), 23, 60000)
+        assert echoes.shape == want.shape and echoes.dtype == np.float64 and echoes.flags.c_contiguous
+        np.testing.assert_array_equal(echoes, want)
+        if i is None:
+            assert echo_int is None
+        else:
+            want_i = np.where(m[:, 1:] >= 0, i[:, 1:], np.nan)
+            assert echo_int.shape == want_i.shape and echo_int.dtype == np.float64
+            assert echo_int.tobytes() == want_i.tobytes()  # NaN bits included
 
 def test_time_reply_and_plain_replies():
     ts = encode_values(np.array([16000000]), 4)
