@@ -234,6 +234,15 @@ def _wait_for_size(path: Path, size: int, proc: subprocess.Popen, timeout: float
     wait_until(grown, timeout, f"the recording growing past {size} bytes", interval=0.2)
 
 
+def _wait_for_topic(path: Path, topic: str, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    """Until the recording (still being written: its completed chunks) holds a message on ``topic``."""
+    def there() -> bool:
+        assert proc.poll() is None, proc.communicate()
+        return path.exists() and any(t == topic for t, _, _, _ in read_mcap(path))
+
+    wait_until(there, timeout, f"a {topic} message in the recording", interval=0.5)
+
+
 @pytest.mark.parametrize("sig", [pytest.param(signal.SIGINT, id="ctrl-c"),
                                  pytest.param(signal.SIGTERM, id="sigterm", marks=pytest.mark.slow)])
 def test_ctrl_c_stops_robot_and_closes_files(tmp_path, sig):
@@ -243,8 +252,10 @@ def test_ctrl_c_stops_robot_and_closes_files(tmp_path, sig):
         try:
             proc = _glassmap("run", "--laser", devices.laser_url, "--base", devices.base_url, "--record", str(rec),
                              "--out", str(tmp_path / "maps"), "--base.enable_motors", "true",
-                             "--output.export_period", "1")
+                             "--output.export_period", "1", "--output.chunk_interval", "0.5")
             await asyncio.get_running_loop().run_in_executor(None, _wait_for_size, rec, 200_000, proc)
+            # on a loaded machine the base's handshake can take longer than 200 kB of laser data
+            await asyncio.get_running_loop().run_in_executor(None, _wait_for_topic, rec, "/odom", proc)
             proc.send_signal(sig)
             out, err = await asyncio.get_running_loop().run_in_executor(None, proc.communicate, None, 60)
         finally:
