@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .grid import MapGrid, OccupancyGrid
-from .registration import bayes_update
+from .registration import Aggregation, WindowEvidence, bayes_update, update_with_evidence
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,15 @@ class GlassMap:
             return
         bayes_update(self.log_odds, flat, delta, self.params.l_min, self.params.l_max)
         self.updates += 1
+
+    def update_evidence(self, evidence: WindowEvidence, aggregation: Aggregation = "scan") -> int:
+        """Eq. 7 with one scan's registration evidence (:func:`~glassmap.registration.window_evidence`),
+        aggregated per cell (``"scan"``: mean, ``"beam"``: sum): the same as :meth:`update` with
+        ``aggregate(registration_observations(...))``, in one compiled pass. Returns the cells updated."""
+        n = update_with_evidence(self.log_odds, evidence, aggregation, self.params.l_min, self.params.l_max)
+        if n:
+            self.updates += 1
+        return n
 
     def reset(self) -> None:
         self.log_odds[...] = 0.0

@@ -19,7 +19,7 @@ import numpy as np
 from .angles import AngleMethod, AngleParams, incidence_angles
 from .glass import GlassMap, GlassParams
 from .grid import MapGrid, OccupancyGrid
-from .registration import Aggregation, DecayRef, Method, aggregate, nearest_occupied_cells, registration_observations
+from .registration import Aggregation, DecayRef, Method, nearest_occupied_cells, window_evidence
 from .types import Scan
 
 log = logging.getLogger(__name__)
@@ -192,11 +192,9 @@ class GlassMapper:
         ends[:, 1] = ey
         cells, _ = nearest_occupied_cells(ends, g.origin, g.resolution, self.occupancy.log_odds, self._occ_thr,
                                           cfg.search_radius)
-        obs = registration_observations(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
-                                        g.shape, method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref,
-                                        p_clip=cfg.glass.p_clip)
-        flat, delta = aggregate(obs, cfg.aggregation)
-        self.glass.update(flat, delta)
+        ev = window_evidence(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
+                             method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref, p_clip=cfg.glass.p_clip)
+        self.glass.update_evidence(ev, cfg.aggregation)
         return n_use
 
     def protect_mask(self) -> np.ndarray | None:

@@ -20,7 +20,8 @@ from typing import Literal
 
 import numpy as np
 
-from .registration_jit import decay_exponents, decayed, nearest_cells, sum_runs, window_observations
+from .registration_jit import (decay_exponents, decayed, nearest_cells, sum_runs, update_windows,
+                               window_observations)
 
 Method = Literal["direct", "robust"]
 DecayRef = Literal["cell", "endpoint"]
@@ -103,25 +104,29 @@ class Observations:
     log_odds: np.ndarray
 
 
-def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.ndarray,
-                              sigma: np.ndarray | float, origin: np.ndarray, resolution: float,
-                              shape: tuple[int, int], method: Method = "robust", k: int = 3,
-                              decay_ref: DecayRef = "cell", p_clip: float = 1e-3) -> Observations:
-    """Observations of the direct or robust registration.
+@dataclass(frozen=True)
+class WindowEvidence:
+    """One scan's glass evidence before it is spread over the window cells: window cell q of beam j (cell
+    ``centre_cells[j] + offsets[q]``, (ix, iy)) receives the log-odds ``log_odds[j, spread[q]]``; cells outside
+    the grid are dropped, and so are log-odds of exactly 0 if ``drop_zero``."""
 
-    p_glass (n,) classifier outputs in (0, 1); end_xy (n, 2) map-frame end points (m); centre_cells (n, 2)
-    c_hat_j as (ix, iy); sigma scalar or (n,) metres. Direct: c_hat_j receives logit(p). Robust: each cell c
-    of the k x k window around c_hat_j receives logit of eq. 6, with the distance measured from the centre
-    of c_hat_j (``decay_ref="cell"``: c_hat_j gets exactly p) or from the end point (``"endpoint"``).
-    Cells outside the grid are dropped; observations of exactly 0.5 (log-odds 0) are dropped.
-    """
+    centre_cells: np.ndarray
+    log_odds: np.ndarray
+    spread: np.ndarray
+    offsets: np.ndarray
+    drop_zero: bool
+
+
+def window_evidence(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.ndarray, sigma: np.ndarray | float,
+                    origin: np.ndarray, resolution: float, method: Method = "robust", k: int = 3,
+                    decay_ref: DecayRef = "cell", p_clip: float = 1e-3) -> WindowEvidence:
+    """The log-odds of the direct or robust registration per beam (see :func:`registration_observations`,
+    same arguments), not yet spread over the window cells."""
     p = np.clip(np.asarray(p_glass, dtype=np.float64), p_clip, 1.0 - p_clip)
     n = p.shape[0]
-    h, w = shape
     centre_cells = np.asarray(centre_cells, dtype=np.int64)
     if method == "direct":
-        ok = _inside(centre_cells, shape, 0)
-        return Observations((centre_cells[:, 1] * w + centre_cells[:, 0])[ok], logit(p)[ok])
+        return WindowEvidence(centre_cells, logit(p)[:, None], _CENTRE_SPREAD, window_offsets(1), False)
     if method != "robust":
         raise ValueError(f"registration method must be 'direct' or 'robust', got {method!r}")
     offs = window_offsets(k)
@@ -141,10 +146,58 @@ def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_ce
         d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]
         dist = np.hypot(d[..., 0], d[..., 1])
         lo = logit(np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip))
-        spread = np.arange(k * k)
+        spread = _identity_spread(k)
     else:
         raise ValueError(f"decay reference must be 'cell' or 'endpoint', got {decay_ref!r}")
-    return Observations(*window_observations(centre_cells, lo, spread, offs, w, h))
+    return WindowEvidence(centre_cells, lo, spread, offs, True)
+
+
+_CENTRE_SPREAD = np.zeros(1, dtype=np.int64)
+_CENTRE_SPREAD.flags.writeable = False
+
+
+@functools.lru_cache(maxsize=8)
+def _identity_spread(k: int) -> np.ndarray:
+    spread = np.arange(k * k)
+    spread.flags.writeable = False
+    return spread
+
+
+def registration_observations(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.ndarray,
+                              sigma: np.ndarray | float, origin: np.ndarray, resolution: float,
+                              shape: tuple[int, int], method: Method = "robust", k: int = 3,
+                              decay_ref: DecayRef = "cell", p_clip: float = 1e-3) -> Observations:
+    """Observations of the direct or robust registration.
+
+    p_glass (n,) classifier outputs in (0, 1); end_xy (n, 2) map-frame end points (m); centre_cells (n, 2)
+    c_hat_j as (ix, iy); sigma scalar or (n,) metres. Direct: c_hat_j receives logit(p). Robust: each cell c
+    of the k x k window around c_hat_j receives logit of eq. 6, with the distance measured from the centre
+    of c_hat_j (``decay_ref="cell"``: c_hat_j gets exactly p) or from the end point (``"endpoint"``).
+    Cells outside the grid are dropped; observations of exactly 0.5 (log-odds 0) are dropped (robust only).
+    """
+    ev = window_evidence(p_glass, end_xy, centre_cells, sigma, origin, resolution, method, k, decay_ref, p_clip)
+    h, w = shape
+    if method == "direct":
+        cells = ev.centre_cells
+        ok = _inside(cells, shape, 0)
+        return Observations((cells[:, 1] * w + cells[:, 0])[ok], ev.log_odds[ok, 0])
+    return Observations(*window_observations(ev.centre_cells, ev.log_odds, ev.spread, ev.offsets, w, h))
+
+
+def update_with_evidence(layer: np.ndarray, ev: WindowEvidence, aggregation: Aggregation, l_min: float,
+                         l_max: float) -> int:
+    """Eq. 7 with one scan's evidence, in place on the (H, W) float32 log-odds ``layer``: the numbers of
+    :func:`registration_observations`, :func:`aggregate` and :func:`bayes_update` in one compiled pass (no
+    observation arrays, no sort). Returns the number of cells updated."""
+    if aggregation not in ("scan", "beam"):
+        raise ValueError(f"aggregation must be 'scan' or 'beam', got {aggregation!r}")
+    if ev.centre_cells.shape[0] == 0:
+        return 0
+    if not layer.flags.c_contiguous:
+        raise ValueError("update_with_evidence needs a C-contiguous layer (it updates it through a flat view)")
+    h, w = layer.shape
+    return update_windows(layer.reshape(-1), ev.centre_cells, ev.log_odds, ev.spread, ev.offsets, w, h,
+                          ev.drop_zero, aggregation == "scan", float(l_min), float(l_max))
 
 
 def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:

@@ -125,3 +125,55 @@ def decayed(p: np.ndarray, w: np.ndarray, dist: np.ndarray, sigma: np.ndarray, p
             wi = w[j, i] if sigma[j] > 0 else (1.0 if dist[i] == 0 else 0.0)
             out[j, i] = min(max((p[j] - 0.5) * wi + 0.5, p_clip), p_max)
     return out
+
+
+@_jit
+def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread: np.ndarray, offs: np.ndarray,
+                   w: int, h: int, drop_zero: bool, mean: bool, l_min: float, l_max: float) -> int:
+    """:func:`window_observations`, then per cell their sum (``mean``: divided by their number) added to the
+    flat float32 log-odds ``layer`` clamped to [l_min, l_max], in one pass without sorting: observations of
+    exactly 0 are left out only if ``drop_zero``. A cell's observations are added in observation order (beam
+    by beam, window cells in ``offs`` order) from 0.0, as :func:`sum_runs` does; the update is that of
+    ``layer[c] = clip(layer[c] + delta, l_min, l_max)`` in float64 stored as float32. Returns the number of
+    cells updated."""
+    n, q = cells.shape[0], offs.shape[0]
+    bits = 1
+    while (1 << bits) < 2 * n * q:
+        bits += 1
+    mask = (1 << bits) - 1
+    shift = np.uint64(64 - bits)
+    fib = np.uint64(0x9E3779B97F4A7C15)  # multiplicative (Fibonacci) hashing of the flat cell index
+    slot = np.full(1 << bits, -1, np.int64)  # open addressing, linear probing: the cell's entry or -1
+    key = np.empty(n * q, np.int64)
+    total = np.empty(n * q)
+    count = np.empty(n * q, np.int64)
+    u = 0
+    for j in range(n):
+        cx, cy = cells[j, 0], cells[j, 1]
+        for i in range(q):
+            x, y = cx + offs[i, 0], cy + offs[i, 1]
+            v = lo[j, spread[i]]
+            if x < 0 or x >= w or y < 0 or y >= h or (drop_zero and v == 0.0):
+                continue
+            c = y * w + x
+            b = np.int64((np.uint64(c) * fib) >> shift)
+            while True:
+                s = slot[b]
+                if s < 0:
+                    s = u
+                    slot[b] = s
+                    key[s] = c
+                    total[s] = 0.0
+                    count[s] = 0
+                    u += 1
+                    break
+                if key[s] == c:
+                    break
+                b = (b + 1) & mask
+            total[s] += v
+            count[s] += 1
+    for s in range(u):
+        d = total[s] / np.float64(count[s]) if mean else total[s]
+        c = key[s]
+        layer[c] = np.float32(min(max(np.float64(layer[c]) + d, l_min), l_max))
+    return u

@@ -1,0 +1,113 @@
+"""The one-pass registration update (GlassMap.update_evidence, glassmap/registration_jit.py::update_windows)
+gives the glass map of the numpy path it replaced (registration_observations, aggregate, GlassMap.update) to
+the last bit: direct and robust registration, both decay references, both aggregations, window cells off
+the grid, many beams on one cell, values clamped at the limits; and so does the mapper over simulated scans."""
+
+import math
+
+import numpy as np
+import pytest
+
+from glassmap.glass import GlassMap, GlassParams
+from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.mapping import GlassMapper, MapperConfig, end_points
+from glassmap.registration import aggregate, nearest_occupied_cells, registration_observations, window_evidence
+
+SETTINGS = [("direct", 3, "cell"), ("robust", 3, "cell"), ("robust", 5, "cell"), ("robust", 3, "endpoint"),
+            ("robust", 7, "endpoint")]
+
+
+def numpy_update(glass: GlassMap, p, ends, cells, sigma, method, k, decay_ref, aggregation) -> None:
+    """The glass-map update of ``GlassMapper.register`` before the one-pass kernel (issue 19)."""
+    g = glass.grid
+    obs = registration_observations(p, ends, cells, sigma, g.origin, g.resolution, g.shape, method=method, k=k,
+                                    decay_ref=decay_ref, p_clip=glass.params.p_clip)
+    glass.update(*aggregate(obs, aggregation))
+
+
+@pytest.mark.parametrize("aggregation", ["scan", "beam"])
+@pytest.mark.parametrize("method,k,decay_ref", SETTINGS)
+def test_update_evidence_equals_the_numpy_path_to_the_bit(method, k, decay_ref, aggregation):
+    rng = np.random.default_rng(7)
+    params = GlassParams(l_min=-2.3, l_max=3.1)
+    maps = [GlassMap(MapGrid(0.05, (-1.0, -0.5), (40, 60)), params) for _ in range(2)]
+    start = rng.normal(0.0, 1.0, maps[0].log_odds.shape).astype(np.float32)
+    for gm in maps:
+        gm.log_odds[...] = start
+    for _ in range(12):
+        n = int(rng.integers(0, 400))
+        # beams bunched on a few cells (many observations per cell) and spread up to and past the edges
+        cells = np.stack([rng.integers(-3, 63, n), rng.integers(-3, 43, n)], axis=1)
+        cells[: n // 3] = cells[: n // 3] % 4 + 20
+        ends = maps[0].grid.cell_to_world(cells) + rng.uniform(-0.025, 0.025, (n, 2))
+        p = rng.uniform(0.0, 1.0, n)
+        p[::7] = 0.5  # log-odds 0: dropped by the robust method, kept (in the mean) by the direct one
+        p[1::11] = rng.choice([0.0, 1.0], p[1::11].shape)  # clipped to p_clip
+        sigma = rng.uniform(0.0, 0.15, n)
+        sigma[::5] = 0.0
+        numpy_update(maps[0], p, ends, cells, sigma, method, k, decay_ref, aggregation)
+        g = maps[1].grid
+        ev = window_evidence(p, ends, cells, sigma, g.origin, g.resolution, method, k, decay_ref, params.p_clip)
+        maps[1].update_evidence(ev, aggregation)
+        np.testing.assert_array_equal(maps[1].log_odds, maps[0].log_odds)
+        assert maps[1].updates == maps[0].updates
+    lo = maps[1].log_odds
+    assert (lo == np.float32(params.l_min)).any() and (lo == np.float32(params.l_max)).any()  # limits reached
+    assert maps[1].updates > 0 and not np.array_equal(lo, start)
+
+
+def test_update_evidence_refuses_an_unknown_aggregation():
+    gm = GlassMap(MapGrid(0.05, (0.0, 0.0), (10, 10)))
+    ev = window_evidence(np.array([0.9]), np.zeros((1, 2)), np.array([[3, 3]]), 0.05, gm.grid.origin, 0.05)
+    with pytest.raises(ValueError):
+        gm.update_evidence(ev, "cell")
+
+
+class ReferenceMapper(GlassMapper):
+    """``GlassMapper`` with the registration of before the one-pass kernel."""
+
+    def register(self, beams, use, scan, laser_pose, sigma, *, ends=None) -> int:
+        n_use = int(np.count_nonzero(use))
+        if not n_use:
+            return 0
+        cfg, g = self.config, self.grid
+        ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
+        margin = (cfg.window // 2 + cfg.search_radius + 2) * g.resolution
+        g.ensure_contains(np.array([ex.min() - margin, ey.min() - margin]),
+                          np.array([ex.max() + margin, ey.max() + margin]))
+        xy = np.stack([ex, ey], axis=1)
+        cells, _ = nearest_occupied_cells(xy, g.origin, g.resolution, self.occupancy.log_odds, self._occ_thr,
+                                          cfg.search_radius)
+        numpy_update(self.glass, beams.p_glass[use], xy, cells, sigma[use], cfg.registration, cfg.window,
+                     cfg.decay_ref, cfg.aggregation)
+        return n_use
+
+
+@pytest.mark.parametrize("config", [MapperConfig(), MapperConfig(registration="direct", aggregation="beam"),
+                                    MapperConfig(window=5, decay_ref="endpoint")])
+def test_mapper_on_simulated_office_scans_equals_the_numpy_path(config):
+    from glassmap.classifier import GlassClassifier
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+
+    clf = GlassClassifier.load_default()
+    world = load_world("office")
+    mappers = [cls(OccupancyGrid(MapGrid(0.05, (-2.0, -2.0), (80, 80), grow_step_m=2.0)), config, classifier=clf)
+               for cls in (ReferenceMapper, GlassMapper)]
+    rng = np.random.default_rng(3)
+    wp = world.route()
+    yaw = math.atan2(*(wp[1] - wp[0])[::-1])
+    for k in range(25):
+        pose = np.array([*(wp[0] + (wp[1] - wp[0]) * k / 25), yaw])
+        scan = simulate_scan(world, pose, rng).to_scan()
+        sigma = rng.uniform(0.0, 0.08, scan.ranges.shape)  # per beam, as the runtime's online sigma
+        noisy = pose + rng.normal(0.0, [0.03, 0.03, 0.01])  # registered at an estimate, occupancy at the truth
+        out = [m.process(scan, noisy, sigma, update_occupancy=k % 3 == 0, occupancy_pose=pose) for m in mappers]
+        np.testing.assert_array_equal(out[1].p_glass, out[0].p_glass)
+        assert out[1].n_registered == out[0].n_registered > 0
+    ref, new = (m.grid for m in mappers)
+    np.testing.assert_array_equal(new.origin, ref.origin)
+    assert new.layer_names == ref.layer_names
+    for name in ref.layer_names:
+        np.testing.assert_array_equal(new[name], ref[name])
+    assert np.any(new["glass"] > 0) and np.any(new["glass"] < 0)
