@@ -6,6 +6,7 @@ for y; arrays are indexed ``layer[iy, ix]`` (row = y). Resolution in metres per 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -84,11 +85,17 @@ class MapGrid:
 
     def ensure_contains(self, xy_min: np.ndarray, xy_max: np.ndarray) -> bool:
         """Grow every layer so the map-frame box [xy_min, xy_max] lies inside. Returns True if it grew."""
-        if not (np.all(np.isfinite(xy_min)) and np.all(np.isfinite(xy_max))):
+        x0, y0, x1, y1 = float(xy_min[0]), float(xy_min[1]), float(xy_max[0]), float(xy_max[1])
+        if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(x1) and math.isfinite(y1)):
             raise ValueError("ensure_contains needs finite coordinates")
+        # the usual case, the box inside already: the cells of world_to_cell in Python floats (same operations)
+        ox, oy, r = float(self.origin[0]), float(self.origin[1]), self.resolution
+        h, w = self.shape
+        if (math.floor((x0 - ox) / r) >= 0 and math.floor((y0 - oy) / r) >= 0
+                and math.floor((x1 - ox) / r) <= w - 1 and math.floor((y1 - oy) / r) <= h - 1):
+            return False
         lo = self.world_to_cell(np.asarray(xy_min, dtype=np.float64))
         hi = self.world_to_cell(np.asarray(xy_max, dtype=np.float64))
-        h, w = self.shape
         pad_left = self._blocks(-lo[0])
         pad_bottom = self._blocks(-lo[1])
         pad_right = self._blocks(hi[0] - (w - 1))

@@ -49,3 +49,19 @@ def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, w: int, fx: np.floa
             continue
         seen[cell] = 2
         lo[cell] = lo[cell] + l_occ
+
+
+@_jit
+def raise_end_cells(lo: np.ndarray, marks: np.ndarray, x: np.ndarray, y: np.ndarray, ox: float, oy: float,
+                    resolution: float, w: int, floor_value: np.float32, occupy: bool) -> None:
+    """For each map-frame point (x[j], y[j]) (m): its cell (floor((x - ox) / resolution), likewise y), then
+    (``occupy``) the flat float32 log-odds ``lo`` of the cell raised to at least ``floor_value`` and (if
+    ``marks`` is not empty) the flat bool ``marks`` of the cell set. The caller grew the grid to hold the
+    points."""
+    mark = marks.shape[0] > 0
+    for j in range(x.shape[0]):
+        c = np.int64(np.floor((y[j] - oy) / resolution)) * w + np.int64(np.floor((x[j] - ox) / resolution))
+        if occupy and not lo[c] >= floor_value:
+            lo[c] = floor_value
+        if mark:
+            marks[c] = True

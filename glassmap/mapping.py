@@ -19,10 +19,13 @@ import numpy as np
 from .angles import AngleMethod, AngleParams, incidence_angles
 from .glass import GlassMap, GlassParams
 from .grid import MapGrid, OccupancyGrid
+from .grid_jit import raise_end_cells
 from .registration import Aggregation, DecayRef, Method, nearest_occupied_cells, window_evidence
 from .types import Scan
 
 log = logging.getLogger(__name__)
+
+_NO_MARKS = np.zeros(0, dtype=bool)
 
 MAX_ABS_COORD = 1.0e4
 """Largest |x| or |y| (m) of a laser pose the mapper accepts; beyond it the grid would grow absurdly."""
@@ -224,16 +227,13 @@ class GlassMapper:
             return 0
         ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
         x, y = ex[glass], ey[glass]
-        xy = np.stack([x, y], axis=1)
         g = self.grid
         g.ensure_contains(*_box(x, y, 1.0))
-        cells = g.world_to_cell(xy)
-        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        lo = self.occupancy.log_odds.reshape(-1)
-        if self.config.glass_hits_occupy:
-            lo[flat] = np.maximum(lo[flat], np.float32(self.occupancy.params.l_occ))
-        if self.config.protect == "hits":
-            self.grid[self.hits_layer].reshape(-1)[flat] = True
+        # the cells of MapGrid.world_to_cell; log-odds raised as by np.maximum (compiled: glassmap/grid_jit.py)
+        marks = self.grid[self.hits_layer].reshape(-1) if self.config.protect == "hits" else _NO_MARKS
+        raise_end_cells(self.occupancy.log_odds.reshape(-1), marks, x, y, float(g.origin[0]), float(g.origin[1]),
+                        g.resolution, g.shape[1], np.float32(self.occupancy.params.l_occ),
+                        self.config.glass_hits_occupy)
         return n_sel
 
     def warm_up(self, scan: Scan) -> None:
@@ -267,7 +267,7 @@ class GlassMapper:
             sig = np.full(n, float(sig))
         elif sig.shape != (n,):
             raise MappingInputError(f"sigma must be a scalar or one value per beam ({n}), got shape {sig.shape}")
-        if np.any(sig < 0):
+        if (sig < 0).any():
             raise MappingInputError("sigma must be >= 0 m")
         self.scans += 1
         if n == 0:
@@ -275,9 +275,10 @@ class GlassMapper:
             return BeamGlass(np.zeros(0), np.zeros(0))
         angles = scan.angles
         beams, use = self.classify(scan, angles=angles)
-        bad_sigma = ~np.isfinite(sig)
-        beams.n_bad += int(np.count_nonzero(bad_sigma & use))
-        use &= ~bad_sigma
+        finite_sigma = np.isfinite(sig)
+        if not finite_sigma.all():
+            beams.n_bad += int(np.count_nonzero(use & ~finite_sigma))
+            use &= finite_sigma
         if update_occupancy:
             self.integrate(scan, occ_pose, angles=angles)
         ends = end_points(pose, angles, scan.ranges, use)
@@ -291,9 +292,10 @@ class GlassMapper:
     @staticmethod
     def _checked_pose(laser_pose) -> np.ndarray:
         pose = np.asarray(laser_pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        x, y, yaw = pose.tolist() if pose.shape == (3,) else (math.nan,) * 3  # Python floats: cheaper checks
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)):
             raise MappingInputError(f"laser_pose must be 3 finite numbers (x m, y m, yaw rad), got {laser_pose!r}")
-        if np.any(np.abs(pose[:2]) > MAX_ABS_COORD):
+        if abs(x) > MAX_ABS_COORD or abs(y) > MAX_ABS_COORD:
             raise MappingInputError(f"laser pose {pose[:2]} m is more than {MAX_ABS_COORD:.0f} m from the map "
                                     "origin; refusing to grow the map that far (check the pose source)")
         return pose

@@ -130,13 +130,15 @@ def window_evidence(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.nd
     if method != "robust":
         raise ValueError(f"registration method must be 'direct' or 'robust', got {method!r}")
     offs = window_offsets(k)
-    sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))[:, None]
+    sg = np.asarray(sigma, dtype=np.float64)
+    if sg.shape != (n,):
+        sg = np.broadcast_to(sg, (n,))
+    sg = np.ascontiguousarray(sg)
     if decay_ref == "cell":
         # the window's cells lie at only a few distinct distances (3 for k = 3): eq. 6 and the logit are
         # evaluated once per beam and distance, then spread over the window
         # (compiled, with numpy's exp and log: the same numbers as decayed_probability and logit)
         dist, spread = _window_distances(k, float(resolution))
-        sg = np.ascontiguousarray(sig[:, 0])
         ex = decay_exponents(dist, sg)
         pd = decayed(p, np.exp(ex, out=ex), dist, sg, p_clip, 1.0 - p_clip)
         lo = np.log(pd)
@@ -145,7 +147,7 @@ def window_evidence(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.nd
         centres = origin + (centre_cells[:, None, :] + offs[None, :, :] + 0.5) * resolution
         d = centres - np.asarray(end_xy, dtype=np.float64)[:, None, :]
         dist = np.hypot(d[..., 0], d[..., 1])
-        lo = logit(np.clip(decayed_probability(p[:, None], dist, sig), p_clip, 1.0 - p_clip))
+        lo = logit(np.clip(decayed_probability(p[:, None], dist, sg[:, None]), p_clip, 1.0 - p_clip))
         spread = _identity_spread(k)
     else:
         raise ValueError(f"decay reference must be 'cell' or 'endpoint', got {decay_ref!r}")

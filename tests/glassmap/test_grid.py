@@ -127,3 +127,21 @@ def test_copy_holds_the_chosen_layers_and_does_not_follow_changes():
     assert c.ensure_contains(np.array([-0.5, 0.0]), np.array([0.5, 0.5]))  # a copy grows on its own
     with pytest.raises(ValueError, match="no layer"):
         g.copy(["nope"])
+
+
+def test_ensure_contains_grows_exactly_when_a_corner_leaves_the_grid():
+    """The box's corner cells decide, on each side: a corner in the first / last cell needs no growth, one
+    just past it grows that side only; non-finite corners are refused."""
+    g = MapGrid(resolution=0.1, origin=(0.0, 0.0), shape=(10, 20), grow_step_m=0.5)
+    eps = 1e-9
+    assert not g.ensure_contains(np.array([0.0, 0.0]), np.array([2.0 - eps, 1.0 - eps]))
+    assert (g.shape, g.generation) == ((10, 20), 0)
+    for lo, hi, shape, origin in (([-eps, 0.0], [1.0, 0.5], (10, 25), (-0.5, 0.0)),
+                                  ([0.0, 0.0], [1.0, 1.0], (15, 25), (-0.5, 0.0)),
+                                  ([0.0, -0.01], [2.0, 0.5], (20, 30), (-0.5, -0.5))):
+        assert g.ensure_contains(np.array(lo), np.array(hi))
+        assert g.shape == shape and np.allclose(g.origin, origin)
+    with pytest.raises(ValueError, match="finite"):
+        g.ensure_contains(np.array([np.nan, 0.0]), np.array([1.0, 1.0]))
+    with pytest.raises(ValueError, match="finite"):
+        g.ensure_contains(np.array([0.0, 0.0]), np.array([1.0, np.inf]))

@@ -1,7 +1,8 @@
 """The one-pass registration update (GlassMap.update_evidence, glassmap/registration_jit.py::update_windows)
 gives the glass map of the numpy path it replaced (registration_observations, aggregate, GlassMap.update) to
 the last bit: direct and robust registration, both decay references, both aggregations, window cells off
-the grid, many beams on one cell, values clamped at the limits; and so does the mapper over simulated scans."""
+the grid, many beams on one cell, values clamped at the limits; and the mapper over simulated scans gives the
+maps of the numpy registration and glass hits (GlassMapper.mark_glass_hits, grid_jit.raise_end_cells)."""
 
 import math
 
@@ -64,7 +65,25 @@ def test_update_evidence_refuses_an_unknown_aggregation():
 
 
 class ReferenceMapper(GlassMapper):
-    """``GlassMapper`` with the registration of before the one-pass kernel."""
+    """``GlassMapper`` with the registration and the glass hits of before the compiled passes (issue 19)."""
+
+    def mark_glass_hits(self, beams, use, scan, laser_pose, *, ends=None) -> int:
+        glass = beams.p_glass[use] > self.config.glass_hit_threshold
+        n_sel = int(np.count_nonzero(glass))
+        if not n_sel:
+            return 0
+        ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
+        x, y = ex[glass], ey[glass]
+        g = self.grid
+        g.ensure_contains(np.array([x.min() - 1.0, y.min() - 1.0]), np.array([x.max() + 1.0, y.max() + 1.0]))
+        cells = g.world_to_cell(np.stack([x, y], axis=1))
+        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
+        lo = self.occupancy.log_odds.reshape(-1)
+        if self.config.glass_hits_occupy:
+            lo[flat] = np.maximum(lo[flat], np.float32(self.occupancy.params.l_occ))
+        if self.config.protect == "hits":
+            self.grid[self.hits_layer].reshape(-1)[flat] = True
+        return n_sel
 
     def register(self, beams, use, scan, laser_pose, sigma, *, ends=None) -> int:
         n_use = int(np.count_nonzero(use))
@@ -84,7 +103,8 @@ class ReferenceMapper(GlassMapper):
 
 
 @pytest.mark.parametrize("config", [MapperConfig(), MapperConfig(registration="direct", aggregation="beam"),
-                                    MapperConfig(window=5, decay_ref="endpoint")])
+                                    MapperConfig(window=5, decay_ref="endpoint", glass_hits_occupy=False),
+                                    MapperConfig(protect="glass", glass_hit_threshold=0.3)])
 def test_mapper_on_simulated_office_scans_equals_the_numpy_path(config):
     from glassmap.classifier import GlassClassifier
     from glassmap.sim.laser import simulate_scan
@@ -111,3 +131,5 @@ def test_mapper_on_simulated_office_scans_equals_the_numpy_path(config):
     for name in ref.layer_names:
         np.testing.assert_array_equal(new[name], ref[name])
     assert np.any(new["glass"] > 0) and np.any(new["glass"] < 0)
+    if config.protect == "hits":
+        assert new["glass_hits"].any()
