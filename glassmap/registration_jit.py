@@ -143,7 +143,7 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
     mask = (1 << bits) - 1
     shift = np.uint64(64 - bits)
     fib = np.uint64(0x9E3779B97F4A7C15)  # multiplicative (Fibonacci) hashing of the flat cell index
-    slot = np.full(1 << bits, -1, np.int64)  # open addressing, linear probing: the cell's entry or -1
+    slot = np.full(1 << bits, -1, np.int32)  # open addressing, linear probing: the cell's entry or -1
     key = np.empty(n * q, np.int64)
     total = np.empty(n * q)
     count = np.empty(n * q, np.int64)
@@ -161,7 +161,7 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
                 s = slot[b]
                 if s < 0:
                     s = u
-                    slot[b] = s
+                    slot[b] = np.int32(s)
                     key[s] = c
                     total[s] = 0.0
                     count[s] = 0
