@@ -27,6 +27,7 @@ import numpy as np
 
 from .angles_jit import (adopt_fits, breaks, chain_points, labels, merge_pieces, moments, piece_moments, point_cosines,
                          relabel, segment_keep, split_pieces, tls_moments)
+from .beam_trig import beam_trig
 
 AngleMethod = Literal["split-merge", "hough"]
 METHODS: tuple[str, ...] = ("split-merge", "hough")
@@ -108,9 +109,10 @@ def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r > 0) & (r <= max_range)
     idx = valid.nonzero()[0]
+    trig = beam_trig(a)  # np.cos / np.sin of the angles, kept from the last scan with the same angles
     u = np.empty((idx.size, 2))
-    np.cos(a[idx], out=u[:, 0])
-    np.sin(a[idx], out=u[:, 1])
+    u[:, 0] = trig.cos[idx]
+    u[:, 1] = trig.sin[idx]
     return a, r, idx, u, u * r[idx, None]
 
 
@@ -139,7 +141,7 @@ def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams
     n = a.shape[0]
     if len(idx) < p.min_points:
         return _finish(n, idx, u, xy, np.zeros(len(idx), dtype=np.int64), 0, p)
-    dphi = abs(_median_step(a))
+    dphi = abs(beam_trig(a).median_step)
     x, y, rv = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), r[idx]
     run_start = breaks(idx, rv, x, y, dphi, math.sin(p.break_lambda), 3.0 * p.break_sigma, p.max_index_gap)
     seg, n_seg = labels(_merge(x, y, _split(x, y, rv, run_start, p), run_start, p))
@@ -151,18 +153,6 @@ def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams
             quality = _requality(xy, seg, n_seg2, quality, left, p)
         n_seg = n_seg2
     return _finish(n, idx, u, xy, seg, n_seg, p, quality=quality)
-
-
-def _median_step(a: np.ndarray) -> float:
-    """np.median(np.diff(a)) (0 for fewer than 2 angles), by a partial sort."""
-    if a.size < 2:
-        return 0.0
-    d = np.diff(a)
-    k = d.size // 2
-    if d.size % 2:
-        return float(np.partition(d, k)[k])
-    lo, hi = np.partition(d, (k - 1, k))[k - 1:k + 1]
-    return float((lo + hi) / 2.0)
 
 
 def _split(x: np.ndarray, y: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:

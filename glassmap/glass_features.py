@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .angles import IncidenceResult
+from .beam_trig import beam_trig
 from .features_jit import context_columns, segment_order
 
 BASELINE_FEATURES = ("log1p(intensity)", "distance_m", "incidence_rad")
@@ -66,10 +67,10 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
     # the per-beam and per-segment loops are compiled; what they need of log1p, cos, sin and the
     # (pairwise) sums per segment is computed here
     order, starts, group = segment_order(np.asarray(inc.segment, dtype=np.int64), inc.n_segments)
-    ang = np.asarray(beam_angles, dtype=np.float64)[order]
+    trig = beam_trig(beam_angles)  # np.cos / np.sin of the angles, kept from the last scan with the same angles
     ro = r[order]
     lsum = np.add.reduceat(li[order], starts) if starts.size else np.zeros(0)
     ext = context_columns(x, li, r, np.asarray(inc.incidence, dtype=np.float64), e, lei, order, starts, lsum,
-                          ro * np.cos(ang), ro * np.sin(ang))
+                          ro * trig.cos[order], ro * trig.sin[order])
     x[order, 15] = np.log1p(ext)[group]
     return x
