@@ -148,7 +148,6 @@ class OdometryTracker:
         self.track = 2.0 / (model.diff_conv * 1000.0)  # m: rad/s = diff_conv * (vR - vL) / 2 in mm/s
         self._raw: tuple[int, int, int] | None = None
         self._stamp: float | None = None
-        self._wheels: tuple[int, int] | None = None  # the last SIP's wheel speeds (LVEL, RVEL units)
         self._suspects: list[tuple[int, int, int]] = []
         self.x = self.y = 0.0  # metres
         self.yaw_unwrapped = 0.0  # radians, not wrapped (total turn + initial heading)
@@ -187,7 +186,6 @@ class OdometryTracker:
             else:
                 self._reject(raw, steps)
         self._stamp = stamp
-        self._wheels = (sip.lvel, sip.rvel)
         v = (sip.lvel + sip.rvel) / 2.0 * m.vel_conv / 1000.0 * self.time_scale
         omega = (sip.rvel - sip.lvel) / 2.0 * m.vel_conv * m.diff_conv * self.time_scale
         return Odometry(stamp=stamp, x=self.x, y=self.y, yaw=float(wrap_angle(self.yaw_unwrapped)), v=v,
@@ -195,14 +193,14 @@ class OdometryTracker:
 
     def cycles_since_last(self, sip: StandardSIP, cycle: float) -> float | None:
         """How many SIP cycles of ``cycle`` robot seconds ``sip`` moves the robot on since the last SIP
-        integrated: its turn (or, driving straight, its distance) over the mean of the two SIPs' wheel speeds
-        times the cycle. None before the first SIP, or when the robot turns less than 0.02 rad and moves less
-        than 1 cm per cycle (too slow to tell)."""
-        if self._raw is None or self._wheels is None or cycle <= 0:
+        integrated: its turn (or, driving straight, its distance) over its wheel speeds (the encoders' over
+        the cycle it reports) times the cycle. None before the first SIP, or when the robot turns less than
+        0.02 rad and moves less than 1 cm per cycle (too slow to tell)."""
+        if self._raw is None or cycle <= 0:
             return None
         m = self.model
         dx, dy, dth = self._steps(self._raw, (sip.xpos & POS_MASK, sip.ypos & POS_MASK, sip.thpos))
-        left, right = (self._wheels[0] + sip.lvel) / 2.0, (self._wheels[1] + sip.rvel) / 2.0
+        left, right = float(sip.lvel), float(sip.rvel)
         turn = abs(right - left) / 2.0 * m.vel_conv * m.diff_conv * cycle  # rad per cycle
         move = abs(left + right) / 2.0 * m.vel_conv / 1000.0 * cycle  # m per cycle
         if turn >= MIN_TURN_PER_CYCLE:

@@ -156,3 +156,5 @@ def test_a_sips_content_tells_how_many_cycles_it_moves_the_robot_on():
     assert tr.cycles_since_last(sip(40, th=146, lvel=-200, rvel=200), 0.1) == pytest.approx(2.0, abs=0.02)
     tr.update(sip(40, th=146, lvel=0, rvel=0), 0.3)
     assert tr.cycles_since_last(sip(41, th=146, lvel=5, rvel=5), 0.1) is None  # creeping: too slow to tell
+    # from rest to 0.4 m/s in one cycle: a SIP's wheel speeds are the encoders' over the cycle it reports
+    assert tr.cycles_since_last(sip(80, th=146, lvel=400, rvel=400), 0.1) == pytest.approx(1.0)
