@@ -7,31 +7,45 @@ at the start of the motion. Units: metres, radians, seconds.
 from __future__ import annotations
 
 import bisect
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from glassmap.types import Odometry, wrap_angle
+from glassmap.types import Odometry
+
+
+_TWO_PI = 2 * math.pi
+
+
+def _wrap(a: float) -> float:
+    """:func:`~glassmap.types.wrap_angle` of one float (rad): the same operations on Python floats (float
+    ``%`` is numpy's ``np.mod``: fmod, then the divisor's sign), so the same value to the last bit."""
+    return math.pi - (math.pi - a) % _TWO_PI
 
 
 def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """SE(2) composition a (+) b: pose b given in the frame of pose a, expressed in a's parent frame."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], float(wrap_angle(a[2] + b[2]))])
+    ax, ay, at = float(a[0]), float(a[1]), float(a[2])
+    bx, by, bt = float(b[0]), float(b[1]), float(b[2])
+    c, s = math.cos(at), math.sin(at)
+    return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap(at + bt)])
 
 
 def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pose of b in the frame of a (a^-1 (+) b), so that compose(a, relative(a, b)) == b."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+    ax, ay, at = float(a[0]), float(a[1]), float(a[2])
+    c, s = math.cos(at), math.sin(at)
+    dx, dy = float(b[0]) - ax, float(b[1]) - ay
+    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(float(b[2]) - at)])
 
 
 def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians (3x3, 3x3) of compose(a, b) with respect to a and to b."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]],
-                   [0.0, 1.0, c * b[0] - s * b[1]],
+    at, bx, by = float(a[2]), float(b[0]), float(b[1])
+    c, s = math.cos(at), math.sin(at)
+    ja = np.array([[1.0, 0.0, -s * bx - c * by],
+                   [0.0, 1.0, c * bx - s * by],
                    [0.0, 0.0, 1.0]])
     jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return ja, jb
@@ -184,10 +198,10 @@ class OdometryBuffer:
                 dx, dy = v * dt, 0.0
             return compose(p, np.array([dx, dy, w * dt]))
         t0, t1 = self._t[i - 1], self._t[i]
-        p0, p1 = self._pose[i - 1], self._pose[i]
+        (x0, y0, th0), (x1, y1, th1) = self._pose[i - 1].tolist(), self._pose[i].tolist()
         a = (t - t0) / (t1 - t0)
-        yaw = p0[2] + a * float(wrap_angle(p1[2] - p0[2]))
-        return np.array([p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), float(wrap_angle(yaw))])
+        yaw = th0 + a * _wrap(th1 - th0)
+        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0), _wrap(yaw)])
 
 
 def deskew(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, delta: np.ndarray,
