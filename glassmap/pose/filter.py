@@ -38,9 +38,10 @@ class PoseEKF:
         """Apply the relative motion ``delta`` (base frame at the previous pose) with covariance ``q``."""
         ja, jb = compose_jacobians(self.pose, delta)
         self.pose = compose(self.pose, delta)
-        self.cov = ja @ self.cov @ ja.T + jb @ q @ jb.T
+        jq = jb @ q @ jb.T
+        self.cov = ja @ self.cov @ ja.T + jq
         self.cov = 0.5 * (self.cov + self.cov.T)
-        self.actual_cov = ja @ self.actual_cov @ ja.T + jb @ q @ jb.T
+        self.actual_cov = ja @ self.actual_cov @ ja.T + jq
         self.actual_cov = 0.5 * (self.actual_cov + self.actual_cov.T)
         self.cross = ja @ self.cross
 
