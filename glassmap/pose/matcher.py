@@ -157,6 +157,15 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     return pts, w, idx
 
 
+# the 19 poses of _score_hessian in units of its steps h: the centre, +-1 along each axis, the 4 diagonal
+# corners of each pair of axes (scaled by h > 0 they are the offsets it used to build per call, signed zeros
+# included, so the poses are the same to the last bit)
+_HESSIAN_PAIRS = ((0, 1), (0, 2), (1, 2))
+_HESSIAN_STENCIL = np.array([np.zeros(3)] + [sg * np.eye(3)[k] for k in range(3) for sg in (1, -1)]
+                            + [a * np.eye(3)[k] + b * np.eye(3)[m] for k, m in _HESSIAN_PAIRS
+                               for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))])
+
+
 class CorrelativeMatcher:
     """Multi-resolution correlative matcher over a :class:`LikelihoodField`."""
 
@@ -191,8 +200,10 @@ class CorrelativeMatcher:
             p = fld.params
             d2 = scaled_squared_distances(fld.vx, fld.vy, px, py, c[:, 0], s[:, 0], ox, oy, res, off, margin, wd, h,
                                           np.float32(-0.5 / p.sigma_hit ** 2))
-            lik = np.log(np.exp(d2) + np.float32(p.p_floor))
-            return lik @ wf
+            np.exp(d2, out=d2)  # log(exp(d2) + p_floor), in place (the same ufuncs, no temporaries)
+            d2 += np.float32(p.p_floor)
+            np.log(d2, out=d2)
+            return d2 @ wf
         fx = (c * pts[:, 0] - s * pts[:, 1] + (xy0[:, :1] - fld.origin[0])) / res
         fy = (s * pts[:, 0] + c * pts[:, 1] + (xy0[:, 1:] - fld.origin[1])) / res
         gx, gy = fx - 0.5, fy - 0.5  # cell centres at integer coordinates
@@ -392,15 +403,11 @@ class CorrelativeMatcher:
     def _score_hessian(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, pose: np.ndarray,
                        h: np.ndarray, margin: int) -> np.ndarray:
         """Hessian (3x3) of the score at ``pose`` by central differences with steps ``h`` (3,) (19 poses)."""
-        eye = np.eye(3) * h
-        i, j = np.triu_indices(3, 1)
-        offs = [np.zeros(3)] + [sg * eye[k] for k in range(3) for sg in (1, -1)]
-        offs += [a * eye[k] + b * eye[m] for k, m in zip(i, j) for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
-        sc = self._pose_scores(fld, pts, w, pose + np.array(offs), margin)
+        sc = self._pose_scores(fld, pts, w, pose + _HESSIAN_STENCIL * h, margin)
         hess = np.empty((3, 3))
         for k in range(3):
             hess[k, k] = (sc[1 + 2 * k] - 2 * sc[0] + sc[2 + 2 * k]) / h[k] ** 2
-        for q, (k, m) in enumerate(zip(i, j)):
+        for q, (k, m) in enumerate(_HESSIAN_PAIRS):
             pp, pm, mp, mm = sc[7 + 4 * q: 11 + 4 * q]
             hess[k, m] = hess[m, k] = (pp - pm - mp + mm) / (4 * h[k] * h[m])
         return hess

@@ -150,3 +150,17 @@ def test_which_beams_are_used_does_not_depend_on_their_own_range_noise():
     _, _, idx2 = select_points(angles, noisy, np.zeros(3), cfg)
     assert np.array_equal(idx[idx % 2 == 0], idx2[idx2 % 2 == 0])
     assert 100 < idx.size < 600  # thinned: about one beam per 8 cm of arc
+
+
+def test_score_hessian_stencil_is_the_per_call_offsets():
+    from glassmap.pose.matcher import _HESSIAN_STENCIL
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        h, pose = rng.uniform(1e-5, 0.02, 3), rng.normal(size=3)
+        pose[rng.integers(3)] = -0.0
+        eye = np.eye(3) * h
+        i, j = np.triu_indices(3, 1)
+        offs = [np.zeros(3)] + [sg * eye[k] for k in range(3) for sg in (1, -1)]
+        offs += [a * eye[k] + b * eye[m] for k, m in zip(i, j) for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
+        assert (pose + np.array(offs)).tobytes() == (pose + _HESSIAN_STENCIL * h).tobytes()
