@@ -244,6 +244,8 @@ class PoseEstimator:
         # filter part), which also corrects the extrapolated motion; None: compose(filter pose, _ext)
         self._scan_post: tuple[np.ndarray, np.ndarray] | None = None
         self._extrapolated = (0.0, 0.0, 0.0, 0.0)
+        # scan_relative_covariance of the last scan, with the objects it was computed from (see there)
+        self._relative_cov: tuple[tuple, np.ndarray] | None = None
         self._last_t: float | None = None
         if config.subcell_walls:
             for name in HIT_LAYERS:
@@ -655,7 +657,14 @@ class PoseEstimator:
         along the extrapolated motion, or the scan's own posterior after a match at an extrapolated stamp)."""
         if self._scan_post is not None:
             return self._scan_post[1]
-        return self._carried(self.ekf.actual_cov) + self.extrapolation_covariance()
+        # asked several times per scan (estimate, registration sigma, map bookkeeping, key scan): computed
+        # once per state. The filter and update() replace these arrays rather than write into them, so the
+        # same objects mean the same state
+        inputs = (self.ekf.pose, self.ekf.actual_cov, self._ext, self._extrapolated)
+        cached = self._relative_cov
+        if cached is None or any(a is not b for a, b in zip(cached[0], inputs)):
+            cached = self._relative_cov = (inputs, self._carried(self.ekf.actual_cov) + self.extrapolation_covariance())
+        return cached[1].copy()
 
     def estimate(self, stamp: float | None = None) -> PoseEstimate:
         """The current estimate (base, map frame, at the last scan) with the reported covariance."""

@@ -345,3 +345,13 @@ def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
     est.predict(Odometry(stamp=0.1, x=0.05, y=0.0, yaw=0.0, v=0.5, omega=0.0))
     e2 = est.update(_scan(inf, 0.1))
     assert e2.covariance[2, 2] == pytest.approx(est.ekf.cov[2, 2] + est.map_cov[2, 2])
+
+
+def test_scan_relative_covariance_follows_the_filter_and_hands_out_copies():
+    est = PoseEstimator(EstimatorConfig())
+    first = est.scan_relative_covariance()
+    first[:] = 99.0  # a caller writing into its copy changes nothing
+    again = est.scan_relative_covariance()
+    assert np.array_equal(again, est.ekf.actual_cov)
+    est.ekf.actual_cov = est.ekf.actual_cov + np.eye(3) * 1e-2  # a new state is seen
+    assert np.array_equal(est.scan_relative_covariance(), again + np.eye(3) * 1e-2)
