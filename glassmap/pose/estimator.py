@@ -365,10 +365,10 @@ class PoseEstimator:
         if ranges.size and write and (cfg.map_uncertainty or cfg.subcell_walls):
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
-            if not cfg.integrate:
+            end = self._end_points(angles, ranges, scan.geometry.range_max)
+            if not cfg.integrate and not self._grid_holds_scan(end, ranges):
                 self.occupancy.ensure_scan_extent(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                                   scan.geometry.range_max)
-            end = self._end_points(angles, ranges, scan.geometry.range_max)
             if cfg.map_uncertainty:
                 self.store_map_variance(angles, ranges, scan.geometry.range_max, end=end)
             if cfg.subcell_walls:
@@ -514,6 +514,25 @@ class PoseEstimator:
         r = ranges[hit]
         a = lp[2] + angles[hit]
         return lp[:2] + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+    def _grid_holds_scan(self, end: np.ndarray, ranges: np.ndarray) -> bool:
+        """Whether the occupancy grid already holds all that ``OccupancyGrid.ensure_scan_extent`` would grow
+        it to for this scan (so that call can be skipped): the box of the scan's end points ``end`` (n, 2)
+        (:meth:`_end_points`, the same values as the grid's) and the laser position, plus its 1 m margin.
+        The space a hit clears lies between the laser and the end point, inside that box; beams without a
+        return that clear space (``no_return_range`` > 0) are not in ``end``, so then False (ask the grid)."""
+        if self.occupancy.params.no_return_range > 0 and np.isposinf(ranges).any():
+            return False
+        lp = self.laser_pose_of(self.scan_pose())
+        g = self.occupancy.grid
+        if len(end):
+            ex, ey = end[:, 0], end[:, 1]  # 1-D reductions (an axis-0 one of (n, 2) costs several times more)
+            lo = np.array([min(ex.min(), lp[0]), min(ey.min(), lp[1])])
+            hi = np.array([max(ex.max(), lp[0]), max(ey.max(), lp[1])])
+        else:
+            lo = hi = lp[:2]
+        c_lo, c_hi = g.world_to_cell(lo - 1.0), g.world_to_cell(hi + 1.0)
+        return bool(c_lo.min() >= 0 and c_hi[0] <= g.shape[1] - 1 and c_hi[1] <= g.shape[0] - 1)
 
     def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
                     end: np.ndarray | None = None) -> None:

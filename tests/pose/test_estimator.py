@@ -355,3 +355,25 @@ def test_scan_relative_covariance_follows_the_filter_and_hands_out_copies():
     assert np.array_equal(again, est.ekf.actual_cov)
     est.ekf.actual_cov = est.ekf.actual_cov + np.eye(3) * 1e-2  # a new state is seen
     assert np.array_equal(est.scan_relative_covariance(), again + np.eye(3) * 1e-2)
+
+
+@pytest.mark.parametrize("no_return_range", [0.0, 4.0])
+def test_grid_holds_scan_only_when_ensure_scan_extent_would_not_grow(no_return_range):
+    # the estimator skips OccupancyGrid.ensure_scan_extent when its own end points say the grid holds the
+    # scan: that must never skip a growth, and should skip where the scan is well inside
+    rng = np.random.default_rng(8)
+    skipped = 0
+    for _ in range(300):
+        occ = OccupancyGrid(MapGrid(0.1, (-3.0, -3.0), (60, 60), grow_step_m=1.0),
+                            replace(EstimatorConfig().occupancy, no_return_range=no_return_range))
+        est = PoseEstimator(EstimatorConfig(integrate=False), occupancy=occ)
+        est.ekf.pose = np.array([*rng.uniform(-2.5, 2.5, 2), rng.uniform(-np.pi, np.pi)])
+        angles = np.sort(rng.uniform(-2.4, 2.4, 40))
+        ranges = rng.uniform(-0.2, rng.choice([0.5, 2.5]), 40)
+        ranges[rng.random(40) < 0.05] = np.inf
+        ranges[rng.random(40) < 0.05] = np.nan
+        holds = est._grid_holds_scan(est._end_points(angles, ranges, 2.2), ranges)
+        grew = occ.ensure_scan_extent(est.laser_pose_of(est.scan_pose()), angles, ranges, 2.2)
+        assert not (holds and grew)
+        skipped += holds
+    assert skipped > 5  # (with no_return_range > 0, only scans without an inf range can skip)
