@@ -32,6 +32,7 @@ from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
+from glassmap.pose.filter_jit import carried, rotated
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points)
@@ -646,13 +647,11 @@ class PoseEstimator:
         dt, v, w, held = self._extrapolated
         if dt <= 0 and held <= 0:
             return np.zeros((3, 3))
-        _, jb = compose_jacobians(self.ekf.pose, self._ext)
-        return jb @ self.config.motion.extrapolation_covariance(v, dt, w, held) @ jb.T
+        return rotated(self.ekf.pose, self.config.motion.extrapolation_covariance(v, dt, w, held))
 
     def _carried(self, cov: np.ndarray) -> np.ndarray:
         """A 3x3 covariance ``cov`` of the filter's pose carried along the extrapolated motion to the scan."""
-        ja, _ = compose_jacobians(self.ekf.pose, self._ext)
-        return ja @ cov @ ja.T
+        return carried(self.ekf.pose, self._ext, np.asarray(cov, dtype=np.float64))
 
     def _measurement_at_state(self, res: MatchResult) -> tuple[np.ndarray, np.ndarray]:
         """The match (base pose at the scan's stamp, covariance) as a measurement of the filter's pose (at the
@@ -702,8 +701,8 @@ class PoseEstimator:
 
     def laser_covariance(self, estimate: PoseEstimate) -> np.ndarray:
         """3x3 covariance of the laser pose (the mount's lever arm turns yaw uncertainty into position)."""
-        ja, _ = compose_jacobians(estimate.pose, self.mount)
-        return ja @ estimate.covariance @ ja.T
+        return carried(np.asarray(estimate.pose, dtype=np.float64), self.mount,
+                       np.asarray(estimate.covariance, dtype=np.float64))
 
     def registration_sigma(self, estimate: PoseEstimate, ranges: np.ndarray) -> np.ndarray:
         """Per-beam registration sigma (m) of the beam end points, shape (n,):

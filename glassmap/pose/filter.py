@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from glassmap.pose.motion import compose, compose_jacobians
+from glassmap.pose.filter_jit import predict as predict_step
 from glassmap.types import wrap_angle
 
 
@@ -35,15 +35,13 @@ class PoseEKF:
         self.cross = np.zeros((3, 3))  # Cov(state error, error of the last fused measurement)
 
     def predict(self, delta: np.ndarray, q: np.ndarray) -> None:
-        """Apply the relative motion ``delta`` (base frame at the previous pose) with covariance ``q``."""
-        ja, jb = compose_jacobians(self.pose, delta)
-        self.pose = compose(self.pose, delta)
-        jq = jb @ q @ jb.T
-        self.cov = ja @ self.cov @ ja.T + jq
-        self.cov = 0.5 * (self.cov + self.cov.T)
-        self.actual_cov = ja @ self.actual_cov @ ja.T + jq
-        self.actual_cov = 0.5 * (self.actual_cov + self.actual_cov.T)
-        self.cross = ja @ self.cross
+        """Apply the relative motion ``delta`` (base frame at the previous pose) with covariance ``q``:
+        pose (+) delta, P <- Ja P Ja^T + Jb q Jb^T (symmetrized; the same for ``actual_cov``), cross <- Ja
+        cross, with the Jacobians of :func:`~glassmap.pose.motion.compose_jacobians` (one compiled step,
+        :func:`glassmap.pose.filter_jit.predict`)."""
+        self.pose, self.cov, self.actual_cov, self.cross = predict_step(
+            self.pose, np.asarray(delta, dtype=np.float64), np.asarray(q, dtype=np.float64), self.cov,
+            self.actual_cov, self.cross)
 
     def innovation(self, z: np.ndarray, r: np.ndarray, h: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, float]:

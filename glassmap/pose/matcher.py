@@ -26,6 +26,7 @@ import numpy as np
 from glassmap.pose.estimator_jit import warm_up as warm_up_estimator
 from glassmap.pose.field import LikelihoodField
 from glassmap.pose.field_jit import warm_up as warm_up_field
+from glassmap.pose.filter_jit import warm_up as warm_up_filter
 from glassmap.pose.matcher_jit import cell_values, scaled_squared_distances
 
 
@@ -424,3 +425,4 @@ def warm_up() -> None:
     m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(1), zero, zero, 1, bilinear=True)
     warm_up_estimator()  # and the estimator's per-beam loops and the field's maximum filter, which the first
     warm_up_field()  # scan and the first field rebuild would load
+    warm_up_filter()  # (and the filter's small-matrix steps)

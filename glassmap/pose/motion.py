@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from glassmap.pose.filter_jit import motion_xy
 from glassmap.types import Odometry
 
 
@@ -114,10 +115,8 @@ class MotionNoise:
         var_lat = (self.lateral_per_m * d) ** 2 + self.trans_rw * d + self.xy_per_s ** 2 * dt
         var_yaw = ((self.rot_per_rad * r) ** 2 + (self.rot_per_m * d) ** 2 + self.rot_rw_m * d
                    + self.rot_rw_rad * r + self.yaw_per_s ** 2 * dt)
-        if d > 1e-9:  # along / lateral axes follow the direction of travel
-            c, s = delta[0] / d, delta[1] / d
-            rot = np.array([[c, -s], [s, c]])
-            xy = rot @ np.diag([var_along, var_lat]) @ rot.T
+        if d > 1e-9:  # along / lateral axes follow the direction of travel: rot diag(along, lat) rot^T
+            xy = motion_xy(float(delta[0]) / d, float(delta[1]) / d, var_along, var_lat)
         else:
             xy = np.diag([var_along, var_lat])
         cov = np.zeros((3, 3))

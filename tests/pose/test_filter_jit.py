@@ -1,0 +1,66 @@
+"""The compiled small-matrix steps of the pose filter give the numpy code they replaced bit for bit."""
+
+import numpy as np
+
+from glassmap.pose.filter_jit import carried, motion_xy, predict, rotated, sandwich
+from glassmap.types import wrap_angle
+
+
+def _same(x, y):
+    return np.asarray(x).tobytes() == np.asarray(y).tobytes()  # bit for bit, signed zeros included
+
+
+def _np_jacobians(a, b):
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return (np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]]),
+            np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+
+
+def _cov(rng):
+    a = rng.normal(size=(3, 3))
+    cov = a @ a.T * 10 ** rng.uniform(-10, 1)
+    if rng.random() < 0.2:
+        cov[2], cov[:, 2] = 0.0, -0.0
+    return cov
+
+
+def _pose(rng, scale=20.0):
+    p = rng.normal(0, scale, 3) * rng.choice([1.0, 1e-7, 0.0], 3)
+    p[2] = p[2] % 7.0 - 3.5
+    return p
+
+
+def test_sandwich_carried_and_rotated_equal_numpy_matmul():
+    rng = np.random.default_rng(10)
+    for _ in range(5000):
+        a, b, cov = _pose(rng), _pose(rng, 0.1), _cov(rng)
+        ja, jb = _np_jacobians(a, b)
+        assert _same(sandwich(ja, cov), ja @ cov @ ja.T)
+        assert _same(carried(a, b, cov), ja @ cov @ ja.T)
+        assert _same(rotated(a, cov), jb @ cov @ jb.T)
+
+
+def test_predict_equals_the_numpy_filter_step():
+    rng = np.random.default_rng(11)
+    for _ in range(5000):
+        pose, delta, q, cov, act, cross = _pose(rng), _pose(rng, 0.05), _cov(rng), _cov(rng), _cov(rng), _cov(rng)
+        ja, jb = _np_jacobians(pose, delta)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        ref_pose = np.array([pose[0] + c * delta[0] - s * delta[1], pose[1] + s * delta[0] + c * delta[1],
+                             float(wrap_angle(pose[2] + delta[2]))])
+        p = ja @ cov @ ja.T + jb @ q @ jb.T
+        a = ja @ act @ ja.T + jb @ q @ jb.T
+        out = predict(pose, delta, q, cov, act, cross)
+        for x, y in zip(out, (ref_pose, 0.5 * (p + p.T), 0.5 * (a + a.T), ja @ cross)):
+            assert _same(x, y)
+
+
+def test_motion_xy_equals_the_numpy_rotation():
+    rng = np.random.default_rng(12)
+    for _ in range(5000):
+        d = rng.normal(size=2) * 10 ** rng.uniform(-6, 0)
+        n = float(np.hypot(d[0], d[1]))
+        c, s = d[0] / n, d[1] / n
+        va, vl = rng.uniform(0, 1e-3, 2)
+        rot = np.array([[c, -s], [s, c]])
+        assert _same(motion_xy(c, s, va, vl), rot @ np.diag([va, vl]) @ rot.T)
