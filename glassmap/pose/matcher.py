@@ -158,6 +158,27 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     return pts, w, idx
 
 
+def _p90_and_median(r: np.ndarray) -> tuple[float, float]:
+    """(np.percentile(r, 90), np.median(r)) of a 1-D array, from one sort: numpy's formulas (linear
+    interpolation at (n - 1) * 0.9, as ``_lerp`` computes it; the mean of the middle two for an even n),
+    so the same values to the last bit; with NaNs, numpy's own functions."""
+    n = r.shape[0]
+    srt = np.sort(r)
+    if n == 0 or srt[-1] != srt[-1]:  # empty, or NaN (sorted last)
+        return float(np.percentile(r, 90)), float(np.median(r))
+    vi = (n - 1) * (90 / 100)
+    if vi >= n - 1:
+        p90 = float(srt[-1])
+    else:
+        i = int(np.floor(vi))
+        a, b = float(srt[i]), float(srt[i + 1])
+        g = vi - i
+        p90 = b - (b - a) * (1 - g) if g >= 0.5 else a + (b - a) * g
+    h = n // 2
+    median = float(srt[h]) if n % 2 else (float(srt[h - 1]) + float(srt[h])) / 2
+    return p90, median
+
+
 # the 19 poses of _score_hessian in units of its steps h: the centre, +-1 along each axis, the 4 diagonal
 # corners of each pair of axes (scaled by h > 0 they are the offsets it used to build per call, signed zeros
 # included, so the poses are the same to the last bit)
@@ -234,8 +255,7 @@ class CorrelativeMatcher:
         sig_yaw = float(np.sqrt(max(prior_cov[2, 2], 0.0)))
         win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.xy_window_min, cfg.xy_window_max))
         win_yaw = float(np.clip(cfg.window_sigmas * sig_yaw, cfg.yaw_window_min, cfg.yaw_window_max))
-        r = np.hypot(pts[:, 0], pts[:, 1])
-        r90 = float(np.percentile(r, 90))
+        r90, r_median = _p90_and_median(np.hypot(pts[:, 0], pts[:, 1]))
         step = float(np.clip(res / max(r90, 1e-3), cfg.yaw_step_min, cfg.yaw_step_max))
 
         # coarse: block translations t (block covers [t, t+f) cells), yaw step f * step
@@ -337,7 +357,7 @@ class CorrelativeMatcher:
         info = self.information(fld, pts, w, pose)
         return MatchResult(pose=pose, covariance=cov, peak_pose=peak, quality=quality,
                            n_points=int(pts.shape[0]), n_poses=int(n_poses), edge=bool(edge),
-                           lever=float(np.median(r)), information=info)
+                           lever=r_median, information=info)
 
     def information(self, fld: LikelihoodField, pts: np.ndarray, w: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Information (3x3, inverse covariance over x, y, yaw; untempered) of the end points at ``pose``

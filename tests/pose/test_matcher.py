@@ -164,3 +164,19 @@ def test_score_hessian_stencil_is_the_per_call_offsets():
         offs = [np.zeros(3)] + [sg * eye[k] for k in range(3) for sg in (1, -1)]
         offs += [a * eye[k] + b * eye[m] for k, m in zip(i, j) for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
         assert (pose + np.array(offs)).tobytes() == (pose + _HESSIAN_STENCIL * h).tobytes()
+
+
+def test_p90_and_median_equal_numpy_percentile_and_median():
+    from glassmap.pose.matcher import _p90_and_median
+
+    rng = np.random.default_rng(9)
+    for n in list(range(1, 40)) + [199, 200, 201, 1000]:
+        for _ in range(30):
+            r = rng.uniform(0.3, 15.0, n) * rng.choice([1.0, 1e-3])
+            if n > 3 and rng.random() < 0.3:
+                r[: n // 3] = r[-1]  # ties
+            p90, med = _p90_and_median(r)
+            assert np.float64(p90).tobytes() == np.float64(np.percentile(r, 90)).tobytes()
+            assert np.float64(med).tobytes() == np.float64(np.median(r)).tobytes()
+    r = np.array([1.0, np.nan, 2.0])
+    assert np.isnan(_p90_and_median(r)[0]) and np.isnan(_p90_and_median(r)[1])
