@@ -136,7 +136,7 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     if idx.size == 0:
         return np.zeros((0, 2)), np.zeros(0), idx
     angles = np.asarray(angles, dtype=np.float64)
-    inc = float(np.median(np.abs(np.diff(angles)))) if angles.size > 1 else 1.0
+    inc = _median(np.abs(np.diff(angles))) if angles.size > 1 else 1.0
     r = ranges[idx]
     # the stride comes from the neighbours' ranges, not the beam's own: otherwise whether a beam near a
     # stride boundary is kept would depend on the sign of its own range noise
@@ -146,7 +146,9 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     hi = np.where(np.isfinite(hi) & (idx < n - 1), hi, np.nan)
     both = np.isfinite(lo) & np.isfinite(hi)
     rs = np.where(both, 0.5 * (lo + hi), np.where(np.isfinite(lo), lo, np.where(np.isfinite(hi), hi, r)))
-    k = np.clip(np.rint(np.log2(config.voxel / (np.maximum(rs, 1e-3) * max(inc, 1e-9)))), 0, 6).astype(np.int64)
+    # (np.minimum/np.maximum rather than np.clip, whose call costs more: the integers are the same)
+    k = np.minimum(np.maximum(np.rint(np.log2(config.voxel / (np.maximum(rs, 1e-3) * max(inc, 1e-9)))), 0.0),
+                   6.0).astype(np.int64)
     keep = (idx & ((1 << k) - 1)) == 0  # index multiple of the stride 2^k
     idx, r = idx[keep], r[keep]
     if idx.size > config.max_points:
@@ -174,9 +176,22 @@ def _p90_and_median(r: np.ndarray) -> tuple[float, float]:
         a, b = float(srt[i]), float(srt[i + 1])
         g = vi - i
         p90 = b - (b - a) * (1 - g) if g >= 0.5 else a + (b - a) * g
-    h = n // 2
-    median = float(srt[h]) if n % 2 else (float(srt[h - 1]) + float(srt[h])) / 2
-    return p90, median
+    return p90, _sorted_median(srt)
+
+
+def _sorted_median(srt: np.ndarray) -> float:
+    """np.median of a sorted, non-empty 1-D array without NaN: the middle value, or the mean of the middle
+    two ((a + b) / 2, as numpy's mean of two values)."""
+    h = srt.shape[0] // 2
+    return float(srt[h]) if srt.shape[0] % 2 else (float(srt[h - 1]) + float(srt[h])) / 2
+
+
+def _median(x: np.ndarray) -> float:
+    """np.median of a 1-D array, from one sort (numpy's own function when empty or with NaN)."""
+    srt = np.sort(x)
+    if srt.shape[0] == 0 or srt[-1] != srt[-1]:
+        return float(np.median(x))
+    return _sorted_median(srt)
 
 
 # the 19 poses of _score_hessian in units of its steps h: the centre, +-1 along each axis, the 4 diagonal

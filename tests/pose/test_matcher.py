@@ -180,3 +180,39 @@ def test_p90_and_median_equal_numpy_percentile_and_median():
             assert np.float64(med).tobytes() == np.float64(np.median(r)).tobytes()
     r = np.array([1.0, np.nan, 2.0])
     assert np.isnan(_p90_and_median(r)[0]) and np.isnan(_p90_and_median(r)[1])
+
+
+def test_median_equals_numpy_median():
+    from glassmap.pose.matcher import _median
+
+    rng = np.random.default_rng(14)
+    for n in list(range(1, 30)) + [1080, 1081]:
+        for _ in range(20):
+            x = np.abs(np.diff(rng.uniform(-2.4, 2.4, n + 1)))
+            if rng.random() < 0.5:
+                x = np.abs(np.diff(-2.356 + 0.0043633 * np.arange(n + 1)))  # a laser's increments: ties
+            assert np.float64(_median(x)).tobytes() == np.float64(np.median(x)).tobytes()
+    assert np.isnan(_median(np.array([1.0, np.nan])))
+
+
+def test_select_points_keeps_the_beams_it_kept_before():
+    # the stride rule with the earlier np.clip / np.median code, as a reference
+    rng = np.random.default_rng(15)
+    angles = -2.356 + 0.0043633 * np.arange(1081)
+    cfg = MatcherConfig()
+    for _ in range(50):
+        ranges = rng.uniform(0.1, 20.0, 1081) * rng.choice([1.0, 0.1], 1081)
+        ranges[rng.random(1081) < 0.05] = np.inf
+        ranges[rng.random(1081) < 0.02] = np.nan
+        idx = np.flatnonzero(np.isfinite(ranges) & (ranges >= cfg.range_min) & (ranges <= cfg.range_max))
+        inc = float(np.median(np.abs(np.diff(angles))))
+        lo, hi = ranges[np.maximum(idx - 1, 0)], ranges[np.minimum(idx + 1, 1080)]
+        lo = np.where(np.isfinite(lo) & (idx > 0), lo, np.nan)
+        hi = np.where(np.isfinite(hi) & (idx < 1080), hi, np.nan)
+        both = np.isfinite(lo) & np.isfinite(hi)
+        rs = np.where(both, 0.5 * (lo + hi), np.where(np.isfinite(lo), lo, np.where(np.isfinite(hi), hi, ranges[idx])))
+        k = np.clip(np.rint(np.log2(cfg.voxel / (np.maximum(rs, 1e-3) * max(inc, 1e-9)))), 0, 6).astype(np.int64)
+        ref = idx[(idx & ((1 << k) - 1)) == 0]
+        if ref.size > cfg.max_points:
+            ref = ref[np.linspace(0, ref.size - 1, cfg.max_points).astype(np.int64)]
+        assert np.array_equal(select_points(angles, ranges, np.zeros(3), cfg)[2], ref)
