@@ -160,6 +160,12 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     return pts, w, idx
 
 
+def _clamp(x: float, lo: float, hi: float) -> float:
+    """float(np.clip(x, lo, hi)) of one number (lo <= hi; NaN stays NaN, as there), without np.clip's
+    call overhead."""
+    return float(min(max(x, lo), hi))
+
+
 def _p90_and_median(r: np.ndarray) -> tuple[float, float]:
     """(np.percentile(r, 90), np.median(r)) of a 1-D array, from one sort: numpy's formulas (linear
     interpolation at (n - 1) * 0.9, as ``_lerp`` computes it; the mean of the middle two for an even n),
@@ -268,10 +274,10 @@ class CorrelativeMatcher:
         prior_pose = np.asarray(prior_pose, dtype=np.float64)
         sig_xy = float(np.sqrt(max(np.linalg.eigvalsh(prior_cov[:2, :2]).max(), 0.0)))
         sig_yaw = float(np.sqrt(max(prior_cov[2, 2], 0.0)))
-        win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.xy_window_min, cfg.xy_window_max))
-        win_yaw = float(np.clip(cfg.window_sigmas * sig_yaw, cfg.yaw_window_min, cfg.yaw_window_max))
+        win_xy = _clamp(cfg.window_sigmas * sig_xy, cfg.xy_window_min, cfg.xy_window_max)
+        win_yaw = _clamp(cfg.window_sigmas * sig_yaw, cfg.yaw_window_min, cfg.yaw_window_max)
         r90, r_median = _p90_and_median(np.hypot(pts[:, 0], pts[:, 1]))
-        step = float(np.clip(res / max(r90, 1e-3), cfg.yaw_step_min, cfg.yaw_step_max))
+        step = _clamp(res / max(r90, 1e-3), cfg.yaw_step_min, cfg.yaw_step_max)
 
         # coarse: block translations t (block covers [t, t+f) cells), yaw step f * step
         nb = int(np.ceil(win_xy / (res * f)))
@@ -361,7 +367,7 @@ class CorrelativeMatcher:
                 den = vals[0] - 2 * vals[1] + vals[2]
                 if den < 0:
                     curved[axis] = True
-                    sub[axis] = float(np.clip(0.5 * (vals[0] - vals[2]) / den, -0.5, 0.5))
+                    sub[axis] = _clamp(0.5 * (vals[0] - vals[2]) / den, -0.5, 0.5)
         peak = np.array([px[tt] + sub[0] * res, py[tt] + sub[1] * res, yaws[kk] + sub[2] * step])
         mean = np.array([mx, my, cyaw + mk])
         pose = np.where(curved, peak, mean)

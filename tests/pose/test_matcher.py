@@ -216,3 +216,14 @@ def test_select_points_keeps_the_beams_it_kept_before():
         if ref.size > cfg.max_points:
             ref = ref[np.linspace(0, ref.size - 1, cfg.max_points).astype(np.int64)]
         assert np.array_equal(select_points(angles, ranges, np.zeros(3), cfg)[2], ref)
+
+
+def test_clamp_equals_np_clip_of_one_number():
+    from glassmap.pose.matcher import _clamp
+
+    rng = np.random.default_rng(16)
+    xs = list(rng.normal(0, 1, 2000)) + [0.0, -0.0, -0.5, 0.5, np.inf, -np.inf]
+    for x in xs:
+        for lo, hi in ((-0.5, 0.5), (0.15, 0.5), (np.radians(0.1), np.radians(0.25))):
+            assert np.float64(_clamp(x, lo, hi)).tobytes() == np.float64(np.clip(x, lo, hi)).tobytes()
+    assert np.isnan(_clamp(np.nan, 0.0, 1.0))
