@@ -15,9 +15,9 @@ caller can tell from the SIP's content how many cycles it moves the robot on (``
 the previous SIP over the wheel speeds', see ``OdometryTracker.cycles_since_last``), that decides: k skips
 the lost SIPs, or the SIP is a late one of the next cycle and is stamped on it. Otherwise (the robot too slow
 to tell, when the stamp hardly matters) it is stamped with its arrival, as without the clock, and kept out
-of the envelope; if the SIP of the next read is as many whole cycles late, SIPs were lost and k skips them. A SIP more than half a cycle before the
-envelope means k ran ahead, and k steps back. Until the envelope has a slope a SIP is stamped with its
-arrival. Stamps never exceed the arrival and never go back.
+of the envelope; if the SIP of the next read is as many whole cycles late, SIPs were lost and k skips them.
+A SIP more than half a cycle before the envelope means k ran ahead, and k steps back. Until the envelope
+has a slope a SIP is stamped with its arrival. Stamps never exceed the arrival and never go back.
 """
 
 from __future__ import annotations
