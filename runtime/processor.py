@@ -77,7 +77,7 @@ class MappingProcessor:
         touching the maps or the pose, and decode a multi-echo laser message: the first network call and
         the first call of each compiled kernel cost tens of milliseconds (seconds the first time on a
         machine, when they compile), which would otherwise delay the first real scans."""
-        from drivers.hokuyo.scip import decode_scan_data, distances_to_metres, encode_values
+        from drivers.hokuyo.scip import warm_up as warm_up_decoders
         from glassmap.pose.matcher import warm_up as warm_up_matcher
         from glassmap.types import LaserGeometry
         from runtime.messages_jit import warm_up as warm_up_last_echo
@@ -86,8 +86,7 @@ class MappingProcessor:
         warm_up_last_echo()  # the event loop's, which the first multi-echo scan would load
         # the laser decoder's compiled paths (multi-echo data, millimetres to metres), which the event loop
         # would load at the first scan
-        decode_scan_data("NE", np.frombuffer(encode_values(np.arange(4), 3), np.uint8).copy())
-        distances_to_metres(np.zeros((1, 1), np.int32), 1, 2)
+        warm_up_decoders()
         geo = LaserGeometry()
         a = geo.angles
         with np.errstate(divide="ignore"):

@@ -28,6 +28,7 @@ from drivers.connecting import Connecting
 from drivers.errors import DeviceTimeout, DriverError, TransportClosed
 from drivers.hokuyo.errors import BadValue, ScipStatusError, SensorSilent, StopNotConfirmed
 from drivers.hokuyo.scip import Reply, encode_command, scan_params
+from drivers.hokuyo.scip import warm_up as warm_up_decoders
 from drivers.hokuyo.session import HokuyoSession, HokuyoStats, SensorParams, scan_from_reply
 from drivers.transport import Tap, Transport, open_transport
 from glassmap.types import LaserGeometry, Scan
@@ -90,6 +91,16 @@ class _Link:
 
 
 _END = object()
+_decoders_warm = False
+
+
+async def _warm_decoders() -> None:
+    """Load the compiled SCIP decoders once per process (compile them, the first time on a machine), in a
+    thread: the event loop keeps serving meanwhile, and the first scan does not wait for them."""
+    global _decoders_warm
+    if not _decoders_warm:
+        await asyncio.to_thread(warm_up_decoders)
+        _decoders_warm = True
 
 
 class HokuyoClient:
@@ -234,6 +245,7 @@ class HokuyoClient:
         self.geometry = p.geometry(start, end, s.cluster)
         if not s.stream:
             return
+        await _warm_decoders()  # before the scan watchdog runs
         await self._time_sync(link)
         params = scan_params(start, end, max(s.cluster, 1), s.skip, 0)
         try:  # sending it tells the session to take scans (they may follow the acknowledgement in the same read)

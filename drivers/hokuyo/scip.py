@@ -331,6 +331,15 @@ def further_echoes(multi: np.ndarray, multi_intensities: np.ndarray | None, dmin
     return echoes, np.where(multi[:, 1:] >= 0, multi_intensities[:, 1:], np.nan)
 
 
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile: seconds, longer than a client's scan watchdog) the
+    compiled decoders now, with the argument types a stream gives them, rather than at the first scan."""
+    for command in ("NE", "ND"):
+        _, _, multi, mint = decode_scan_data(command, np.frombuffer(encode_values(np.arange(4), 3), np.uint8).copy())
+        distances_to_metres(multi[:, 0].copy(), 1, 2)
+        further_echoes(multi, mint, 1, 2)
+
+
 # ------------------------------------------------------------------------------------------------ parser
 _KNOWN_ECHO_END_RE = re.compile(_KNOWN_ECHO_RE.pattern + rb"\Z")
 
