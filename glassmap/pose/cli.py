@@ -83,7 +83,14 @@ def register(subparsers) -> None:
     add_seeds(x, "0-9")
     x.add_argument("--methods", default="direct,robust3,robust5",
                    help="registration methods (default: direct,robust3,robust5)")
-    x.add_argument("--glass-every", type=int, default=4, help="map glass on every k-th scan (default: 4 = 10 Hz)")
+    x.add_argument("--glass-scans", choices=("keys", "every"), default="keys",
+                   help="which scans the online maps register: keys (default: each key scan as the estimator matches "
+                   "it, as the runtime does) or every (every --glass-every-th scan)")
+    x.add_argument("--glass-every", type=int, default=4,
+                   help="with --glass-scans every: map glass on every k-th scan (default: 4 = 10 Hz)")
+    x.add_argument("--compare-glass-scans", action="store_true",
+                   help="also build online maps <method>@<other>-online registered on the other kind of scans, on "
+                   "the same trials")
     x.add_argument("--sigma", default="map",
                    help="where the registration sigma comes from: map (the pose's covariance relative to the map "
                    "built so far, the default) or anchor (the reported covariance, relative to the map frame's "
@@ -234,7 +241,7 @@ def _experiment(args: argparse.Namespace) -> int:
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     sigmas = tuple(m.strip() for m in args.sigma.split(",") if m.strip())
     cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every,
-                            sigmas=sigmas, loop_closure=args.loop_closure)
+                            glass_scans=args.glass_scans, compare_glass_scans=args.compare_glass_scans, sigmas=sigmas, loop_closure=args.loop_closure)
     clf = GlassClassifier.load_default()
     rows = []
     for s in tqdm(seeds, desc="online trials", unit="trial"):

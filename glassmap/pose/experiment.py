@@ -1,8 +1,8 @@
 """The paper's experiment online: glass maps built from the pose estimator's poses and covariances.
 
 Per trial (seed): simulate a run (scans 40 Hz, odometry 10 Hz), run the :class:`PoseEstimator` on every scan
-(it builds the shared occupancy grid at its corrected poses), and every ``glass_every``-th scan feed the glass
-mappers of each method (direct, robust 3x3, robust 5x5, ...) with the estimator's laser pose and per-beam
+(it builds the shared occupancy grid at its corrected poses), and on the scans ``glass_scans`` names feed the
+glass mappers of each method (direct, robust 3x3, robust 5x5, ...) with the estimator's laser pose and per-beam
 registration sigma. The mappers share the estimator's grid (each its own glass layer, ``glass_<method>``);
 the estimator's occupancy update uses the first mapper's protect mask so that glass cells are kept as the
 glass-map helper's trial does. Scoring is the glass-map helper's (``glassmap.eval``): blueprint wall/glass
@@ -13,6 +13,12 @@ key scan (with its p(glass)), and after the run each method's glass map is rebui
 (:func:`~glassmap.pose.corrected.rebuild_maps`, registration sigma relative to the map): at the front end's
 poses (``<method>@keys``: no loop closure) and at the graph's optimised poses (``<method>@keys+lc``), so the
 two differ only by the loop closures. The online maps (``<method>``) are scored as without it.
+
+Which scans the online maps register (``glass_scans``): ``"keys"`` (default), each key scan as soon as the
+estimator has matched it, at its corrected pose, on the grid as it then is (as the runtime does); ``"every"``,
+every ``glass_every``-th scan, most of them placed by odometry since the last match. ``compare_glass_scans``
+adds, on the same trial, maps ``<method>@<other>-online`` registered the other way (the glass hits kept in the
+shared grid follow the main maps' scans).
 """
 
 from __future__ import annotations
@@ -28,12 +34,17 @@ from glassmap.pose.estimator import EstimatorConfig
 from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, metrics, run_estimator
 
 
+GLASS_SCANS = ("keys", "every")
+"""Which scans an online glass map registers: the key scans, as each is matched, or every k-th scan."""
+
+
 @dataclass(frozen=True)
 class OnlineTrialConfig:
     """world / route: simulator world and route (None = default route); methods: names from
-    ``glassmap.eval.trial.METHODS``; glass_every: map glass on every k-th scan (4 -> 10 Hz, the glass-map
-    experiment's rate); eval_radius (m); estimator: the pose estimator's settings; sigma_scale: multiply
-    the registration sigma (1 = as reported); sigmas: where the online registration sigma comes from
+    ``glassmap.eval.trial.METHODS``; glass_every: map glass on every k-th scan with ``glass_scans`` "every" (4 -> 10 Hz, the
+    glass-map experiment's rate); eval_radius (m); estimator: the pose estimator's settings; sigma_scale: multiply
+    the registration sigma (1 = as reported); glass_scans / compare_glass_scans: which scans the online maps
+    register (``GLASS_SCANS``; module docstring); sigmas: where the online registration sigma comes from
     (:data:`~glassmap.pose.corrected.SIGMA_SOURCES`): the first feeds the methods' maps, each further one
     adds online maps ``<method>~<source>`` of the methods whose registration reads the sigma (robust; direct
     does not, so the trajectory and the first method's map are the same); loop_closure: also run the
@@ -44,12 +55,20 @@ class OnlineTrialConfig:
     route: str | None = None
     methods: tuple[str, ...] = ("direct", "robust3", "robust5")
     glass_every: int = 4
+    glass_scans: str = "keys"
+    compare_glass_scans: bool = False
     eval_radius: float = 1.5
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     sigma_scale: float = 1.0
     sigmas: tuple[str, ...] = ("map",)
     loop_closure: bool = False
     backend: BackEndConfig = field(default_factory=BackEndConfig)
+
+    def __post_init__(self) -> None:
+        if self.glass_scans not in GLASS_SCANS:
+            raise ValueError(f"glass_scans must be one of {GLASS_SCANS}, got {self.glass_scans!r}")
+        if self.glass_every < 1:
+            raise ValueError(f"glass_every must be >= 1 (every k-th scan), got {self.glass_every}")
 
 
 def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list[dict]:
@@ -95,6 +114,10 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
                         mappers[f"{m}~{src}"] = GlassMapper(est.occupancy, MapperConfig(
                             layer=f"glass_{m}~{src}", **METHODS[m]), classifier=classifier)
             state["mappers"] = mappers
+            state["other"] = other = next(g for g in GLASS_SCANS if g != cfg.glass_scans)
+            state["other_mappers"] = {f"{m}@{other}-online": GlassMapper(est.occupancy, MapperConfig(
+                layer=f"glass_{m}@{other}-online", **METHODS[m]), classifier=classifier)
+                for m in (cfg.methods if cfg.compare_glass_scans else ())}
             first = next(iter(mappers.values()))
             est.protect_mask_fn = first.protect_mask
         # truth: blueprint cells seen by returned beams from the true pose
@@ -109,23 +132,32 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
         seen[cy[ok], cx[ok]] = True
         mappers = state["mappers"]
         first = next(iter(mappers.values()))
+        other_mappers = state["other_mappers"]
         beams = None
-        if backend is not None and est.stats.last_keyframe and est.last_key_scan is not None:
+        is_key = est.stats.last_keyframe and est.last_key_scan is not None
+        if backend is not None and is_key:
             beams, use = first.classify(scan)
             backend.add(replace(est.last_key_scan, scan=scan, p_glass=np.where(use, beams.p_glass, np.nan)))
             key_index.append(i)
-        if i % cfg.glass_every:
+        now = {"keys": is_key, "every": i % cfg.glass_every == 0}
+        main = now[cfg.glass_scans]
+        other = bool(other_mappers) and now[state["other"]]
+        if not main and not other:
             return
         lp = est.laser_pose(est_pose)
         sigma = {src: cfg.sigma_scale * online_sigma(est, est_pose, scan.ranges, src) for src in cfg.sigmas}
         s0 = sigma[cfg.sigmas[0]]
-        sigmas.append(float(np.nanmedian(s0)) if np.isfinite(s0).any() else np.nan)
         if beams is None:
             beams, use = first.classify(scan)
-        first.mark_glass_hits(beams, use, scan, lp)
-        for name, mp in mappers.items():
-            s = sigma[name.split("~")[1] if "~" in name else cfg.sigmas[0]]
-            mp.register(beams, use & np.isfinite(s), scan, lp, s)
+        if main:
+            sigmas.append(float(np.nanmedian(s0)) if np.isfinite(s0).any() else np.nan)
+            first.mark_glass_hits(beams, use, scan, lp)
+            for name, mp in mappers.items():
+                s = sigma[name.split("~")[1] if "~" in name else cfg.sigmas[0]]
+                mp.register(beams, use & np.isfinite(s), scan, lp, s)
+        if other:
+            for mp in other_mappers.values():
+                mp.register(beams, use & np.isfinite(s0), scan, lp, s0)
 
     from glassmap.grid import MapGrid, OccupancyGrid
 
@@ -138,6 +170,7 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
     pose_cols = dict(ate_rmse=pm.ate_rmse, ate_max=pm.ate_max, nees_mean=pm.nees_mean,
                      sigma_median=float(np.nanmedian(sigmas)), n_scans=pm.scans)
     maps = [(m, "online", mp) for m, mp in state["mappers"].items()]
+    maps += [(m, m.split("@")[1], mp) for m, mp in state["other_mappers"].items()]
     lc_cols: dict = {}
     if backend is not None:
         from glassmap.grid import MapGrid
@@ -200,7 +233,7 @@ def _on_blueprint(mapper, bp) -> np.ndarray:
 
 
 def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: str = "robust3",
-            suffixes: tuple[str, ...] = ("", "@keys", "@keys+lc")) -> list[dict]:
+            suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")) -> list[dict]:
     """For each map kind (method-name suffix) present in ``summary`` (:func:`glassmap.eval.experiment.summarise`
     rows): ``other``'s mean / worst / std of the error against ``base``'s, as relative gains (positive:
     ``other`` is lower), and whether ``other`` beats ``base`` in all three."""
@@ -216,7 +249,7 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
 
 
 def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...] = ("robust3", "robust3~anchor"),
-                  suffixes: tuple[str, ...] = ("", "@keys", "@keys+lc")) -> tuple[list[dict], list[dict]]:
+                  suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")) -> tuple[list[dict], list[dict]]:
     """Per world (the rows' ``world``) and per map kind: each of ``others``' margins over ``base``
     (:func:`margins`); and over the worlds, per (other, maps): the mean margin, the worst world's margin
     (lowest gain) and that world, and how many worlds it beats ``base`` in mean, worst and std together."""

@@ -24,15 +24,23 @@ def test_margins_are_relative_gains_and_beating_needs_all_three():
 @pytest.mark.slow
 def test_trial_with_loop_closure_scores_maps_rebuilt_at_front_end_and_optimised_poses():
     cfg = OnlineTrialConfig(world="glass-corridor", route=None, methods=("direct", "robust3"), loop_closure=True,
-                            sigmas=("map", "anchor"))
+                            sigmas=("map", "anchor"), compare_glass_scans=True)
     rows = run_online_trial(cfg, 0)
     names = [r["method"] for r in rows]
-    assert names == ["direct", "robust3", "robust3~anchor", "direct@keys", "robust3@keys", "direct@keys+lc",
+    assert names == ["direct", "robust3", "robust3~anchor", "direct@every-online", "robust3@every-online",
+                     "direct@keys", "robust3@keys", "direct@keys+lc",
                      "robust3@keys+lc"]  # direct does not read the sigma: no direct~anchor
     for r in rows:
         assert 0.0 <= r["error"] < 0.5 and r["n_cells"] > 100  # the corridor's glass walls scored
         assert r["key_scans"] > 10 and np.isfinite(r["keys_ate"]) and np.isfinite(r["keys_lc_ate"])
         assert r["false_closures"] <= r["closures"]
+
+
+def test_online_trial_config_refuses_unknown_glass_scans_and_a_zero_step():
+    with pytest.raises(ValueError, match="glass_scans"):
+        OnlineTrialConfig(glass_scans="all")
+    with pytest.raises(ValueError, match="glass_every"):
+        OnlineTrialConfig(glass_scans="every", glass_every=0)
 
 
 def test_false_closures_are_those_off_the_truth_by_more_than_5_cm_or_1_deg():
