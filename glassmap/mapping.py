@@ -247,10 +247,12 @@ class GlassMapper:
         self._fallback = scratch._fallback
 
     # -- the per-scan path ---------------------------------------------------------------------------------
-    def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray, *,
-                update_occupancy: bool = True, occupancy_pose: np.ndarray | None = None) -> BeamGlass:
+    def process(self, scan: Scan, laser_pose: np.ndarray, sigma: float | np.ndarray | None, *,
+                update_occupancy: bool = True, occupancy_pose: np.ndarray | None = None,
+                register: bool = True) -> BeamGlass:
         """One scan: incidence angles, p(glass) (one batched network call), occupancy update (unless the caller
-        did it already: ``update_occupancy=False``), registration and Bayesian update.
+        did it already: ``update_occupancy=False``), glass hits, registration and Bayesian update (unless
+        ``register=False``: then ``sigma`` is not used and may be None).
 
         laser_pose: (3,) laser (x, y, yaw) in the map frame (m, rad). sigma: registration sigma (m), scalar or
         per beam (n,). occupancy_pose: the laser pose for the occupancy update and the glass hits it keeps
@@ -262,7 +264,7 @@ class GlassMapper:
         pose = self._checked_pose(laser_pose)
         occ_pose = pose if occupancy_pose is None else self._checked_pose(occupancy_pose)
         n = scan.ranges.shape[0]
-        sig = np.asarray(sigma, dtype=np.float64)
+        sig = np.asarray(sigma if register else 0.0, dtype=np.float64)
         if sig.ndim == 0:
             sig = np.full(n, float(sig))
         elif sig.shape != (n,):
@@ -284,7 +286,8 @@ class GlassMapper:
         ends = end_points(pose, angles, scan.ranges, use)
         if self.config.glass_hits_occupy or self.config.protect == "hits":
             self.mark_glass_hits(beams, use, scan, occ_pose, ends=ends if occ_pose is pose else None)
-        beams.n_registered = self.register(beams, use, scan, pose, sig, ends=ends)
+        if register:
+            beams.n_registered = self.register(beams, use, scan, pose, sig, ends=ends)
         if beams.n_ranged == 0:
             self.skipped_scans += 1
         return beams

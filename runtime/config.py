@@ -92,6 +92,10 @@ class MappingConfig:
     occupancy_update: str = setting("mapper", "who integrates each scan into the occupancy grid at the corrected "
                                          "pose: 'mapper' (glass-aware: cells hit by glass-classified beams "
                                          "are kept occupied and not cleared) or 'estimator' (plain)")
+    glass_scans: str = setting("keys", "which scans update the glass map (registration + Bayesian update): 'keys' "
+                               "(each key scan, at the pose its match gave) or 'all' (every scan; between key scans "
+                               "the pose comes from odometry since the last match); p(glass) per beam and the glass "
+                               "hits kept occupied come from every scan either way")
     glass_weighting: bool = setting(False, "scan matching down-weights beams ending on likely glass (the glass map)")
     deskew: bool = setting(True, "undo the robot's motion during each laser sweep with the odometry before scan "
                             "matching (a real laser sweeps its 270 deg in ~19 ms; the demo's emulated laser "
@@ -103,7 +107,7 @@ class MappingConfig:
     keyframe_distance: float = setting(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
                                         "when the base moved this far (m) since the last key scan (0 with "
                                         "keyframe_angle_deg 0 = every scan); every scan still gets a pose and "
-                                        "the glass update")
+                                        "p(glass) per beam")
     keyframe_angle_deg: float = setting(2.0, "motion filter: ... or turned this much (deg) since the last key scan")
     keyframe_max_scans: int = setting(20, "motion filter: ... or this many scans passed since it (0 = no limit)")
     classifier_weights: str = setting("", "classifier weights stem (path without .pt/.json); '' = the shipped weights")
@@ -179,6 +183,8 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.aggregation must be scan or beam, got {m.aggregation!r}")
         if m.decay_reference not in ("cell", "endpoint"):
             raise ConfigError(f"mapping.decay_reference must be cell or endpoint, got {m.decay_reference!r}")
+        if m.glass_scans not in ("keys", "all"):
+            raise ConfigError(f"mapping.glass_scans must be keys or all, got {m.glass_scans!r}")
         if m.occupancy_update not in ("mapper", "estimator"):
             raise ConfigError(f"mapping.occupancy_update must be mapper or estimator, got {m.occupancy_update!r}")
         if m.max_free_range <= 0:

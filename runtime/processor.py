@@ -27,10 +27,13 @@ class MappingProcessor:
     mapper then runs with ``update_occupancy=False``). Either way the integration
     happens once per key scan, after matching, at the corrected laser pose. Key scans are chosen by the
     estimator's motion filter (``EstimatorConfig.keyframe_*``: moved >= 5 cm or turned >= 2 deg since the
-    last key scan, or 20 scans since it); every scan still gets a pose + covariance and the glass path
-    (p(glass) per beam, glass hits, registration and glass-map update). The registration sigma comes from
-    ``mapping.registration_sigma`` (:func:`~glassmap.pose.corrected.online_sigma`: by default the pose's
-    covariance relative to the map it registers on)."""
+    last key scan, or 20 scans since it); every scan still gets a pose + covariance and p(glass) per beam.
+    Every scan's glass-classified beams keep their cells occupied (glass is seen only near normal incidence,
+    often for a few scans); ``mapping.glass_scans`` chooses the scans whose p(glass) is registered onto the
+    glass map: the key scans (default), at the pose their match gave, or every scan, most of them placed by
+    odometry since the last match. The registration sigma comes from ``mapping.registration_sigma``
+    (:func:`~glassmap.pose.corrected.online_sigma`: by default the pose's covariance relative to the map it
+    registers on)."""
 
     def __init__(self, mapping: MappingConfig, *, estimator_config=None, mapper_config=None) -> None:
         from dataclasses import replace
@@ -56,6 +59,7 @@ class MappingProcessor:
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"
         self.sigma_source = mapping.registration_sigma
+        self.glass_every_scan = mapping.glass_scans == "all"
         self._online_sigma = online_sigma  # glassmap.pose is imported lazily in this module
         self.graph = None  # the pose-graph worker (mapping.loop_closure)
         if mapping.loop_closure:
@@ -107,9 +111,11 @@ class MappingProcessor:
         est = self.estimator.update(scan)
         t1 = time.perf_counter()
         laser_pose = self.estimator.laser_pose(est)
-        sigma = self._online_sigma(self.estimator, est, scan.ranges, self.sigma_source)
         key = self.estimator.stats.last_keyframe
-        beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key)
+        register = key or self.glass_every_scan
+        sigma = self._online_sigma(self.estimator, est, scan.ranges, self.sigma_source) if register else None
+        beams = self.mapper.process(scan, laser_pose, sigma, update_occupancy=self.mapper_integrates and key,
+                                    register=register)
         t2 = time.perf_counter()
         corrected = None
         if self.graph is not None:

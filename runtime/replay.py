@@ -93,6 +93,7 @@ def recorded_config(path: str | Path, base: RuntimeConfig | None = None) -> Runt
         known = {f.name for f in dataclasses.fields(cfg.mapping)}
         values = {k: v for k, v in json.loads(meta["mapping"]).items() if k in known}
         values.setdefault("registration_sigma", "anchor")  # recorded before the setting: the sigma used then
+        values.setdefault("glass_scans", "all")  # recorded before the setting: every scan was registered
         cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, **values))
     return cfg
 

@@ -14,11 +14,13 @@ key scan (with its p(glass)), and after the run each method's glass map is rebui
 poses (``<method>@keys``: no loop closure) and at the graph's optimised poses (``<method>@keys+lc``), so the
 two differ only by the loop closures. The online maps (``<method>``) are scored as without it.
 
-Which scans the online maps register (``glass_scans``): ``"keys"`` (default), each key scan as soon as the
-estimator has matched it, at its corrected pose, on the grid as it then is (as the runtime does); ``"every"``,
-every ``glass_every``-th scan, most of them placed by odometry since the last match. ``compare_glass_scans``
-adds, on the same trial, maps ``<method>@<other>-online`` registered the other way (the glass hits kept in the
-shared grid follow the main maps' scans).
+The glass path sees every ``glass_every``-th scan and every key scan: each is classified and its glass hits
+are kept occupied in the shared grid. Which of them the online maps register (``glass_scans``): ``"keys"``
+(default), each key scan as soon as the estimator has matched it, at its corrected pose, on the grid as it then
+is; ``"every"``, every ``glass_every``-th scan, most of them placed by odometry since the last match (the
+runtime's ``mapping.glass_scans`` = keys / all, with ``glass_every`` 1). ``compare_glass_scans`` adds, on the
+same trial, maps ``<method>@<other>-online`` registered the other way; the grid and the trajectory are the same
+for both.
 """
 
 from __future__ import annotations
@@ -140,18 +142,20 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
             backend.add(replace(est.last_key_scan, scan=scan, p_glass=np.where(use, beams.p_glass, np.nan)))
             key_index.append(i)
         now = {"keys": is_key, "every": i % cfg.glass_every == 0}
+        if not any(now.values()):
+            return
+        lp = est.laser_pose(est_pose)
+        if beams is None:
+            beams, use = first.classify(scan)
+        first.mark_glass_hits(beams, use, scan, lp)  # on every scan the glass path sees, as the runtime
         main = now[cfg.glass_scans]
         other = bool(other_mappers) and now[state["other"]]
         if not main and not other:
             return
-        lp = est.laser_pose(est_pose)
         sigma = {src: cfg.sigma_scale * online_sigma(est, est_pose, scan.ranges, src) for src in cfg.sigmas}
         s0 = sigma[cfg.sigmas[0]]
-        if beams is None:
-            beams, use = first.classify(scan)
         if main:
             sigmas.append(float(np.nanmedian(s0)) if np.isfinite(s0).any() else np.nan)
-            first.mark_glass_hits(beams, use, scan, lp)
             for name, mp in mappers.items():
                 s = sigma[name.split("~")[1] if "~" in name else cfg.sigmas[0]]
                 mp.register(beams, use & np.isfinite(s), scan, lp, s)

@@ -157,6 +157,16 @@ def test_update_occupancy_false_leaves_the_shared_grid_to_the_caller(clf):
     assert m.grid is occ.grid and "glass" in occ.grid.layer_names
 
 
+def test_register_false_classifies_and_keeps_glass_hits_but_leaves_the_glass_map_alone(clf):
+    m = GlassMapper(config=MapperConfig(glass_hit_threshold=0.0), classifier=clf)  # every classified beam a hit
+    b = m.process(box_scan(), POSE, None, register=False)
+    assert b.n_classified > 1000 and b.n_registered == 0
+    assert not np.any(m.glass.log_odds)  # no evidence
+    assert m.grid[m.hits_layer].sum() > 100 and m.occupancy.occupied().sum() > 100  # the occupancy side ran
+    b = m.process(box_scan(), POSE, 0.05)
+    assert b.n_registered == b.n_classified and np.any(m.glass.log_odds)
+
+
 def test_glass_layer_follows_grid_growth(clf):
     m = GlassMapper(OccupancyGrid(MapGrid(0.05, (-2.0, -2.0), (80, 80), grow_step_m=2.0)), MapperConfig(),
                     classifier=clf)

@@ -58,6 +58,7 @@ def test_serial_laser_and_tcp_base():
     ("[laser]\nip_port = \"ten\"\n", "laser.ip_port: expected int"),
     ("[mapping]\nwindow = 4\n", "mapping.window must be 3 or 5"),
     ("[mapping]\nregistration_sigma = \"world\"\n", "mapping.registration_sigma must be map or anchor"),
+    ("[mapping]\nglass_scans = \"every\"\n", "mapping.glass_scans must be keys or all"),
     ("[laser\n", r"robot.toml: .*line 1"),
 ])
 def test_bad_files_name_file_key_and_problem(tmp_path, text, match):

@@ -100,9 +100,11 @@ def test_bad_settings():
         ProcessingStage(Recorder(), max_scan_age=0)
 
 
-def test_processor_maps_occupancy_on_key_scans_only_and_the_glass_path_on_every_scan():
+@pytest.mark.parametrize("glass_scans", ["keys", "all"])
+def test_processor_maps_occupancy_on_key_scans_and_glass_on_the_chosen_scans(glass_scans):
     """Standing still with keyframe_max_scans = 5: scans 0, 5, 10 are key scans; only they clear free space
-    (the mapper's occupancy update), while every scan gets a pose and p(glass) per beam."""
+    (the mapper's occupancy update); every scan gets a pose and p(glass) per beam; the glass map changes on the
+    key scans only (glass_scans = keys) or on every scan (all)."""
     import numpy as np
 
     from glassmap.types import Odometry, Scan
@@ -110,11 +112,12 @@ def test_processor_maps_occupancy_on_key_scans_only_and_the_glass_path_on_every_
     from runtime.processor import MappingProcessor
     from tests.pose.synth import make_scan as room_scan, room_with_corner
 
-    proc = MappingProcessor(MappingConfig(laser_x=0.0, initial_x=-1.5, initial_y=-1.0, keyframe_max_scans=5))
+    proc = MappingProcessor(MappingConfig(laser_x=0.0, initial_x=-1.5, initial_y=-1.0, keyframe_max_scans=5,
+                                          glass_scans=glass_scans))
     segs = room_with_corner()
     rng = np.random.default_rng(0)
-    cleared, keys = [], []  # per scan: did any cell's occupancy log-odds go down (free space cleared)?
-    before = None
+    cleared, keys, glass_changed = [], [], []  # per scan: free space cleared? glass map changed?
+    before = glass_before = None
     for k in range(12):
         s = room_scan(segs, np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01, rng=rng)
         scan = Scan(stamp=s.stamp, ranges=s.ranges, intensities=np.full(s.ranges.shape, 3000.0),
@@ -125,10 +128,15 @@ def test_processor_maps_occupancy_on_key_scans_only_and_the_glass_path_on_every_
         lo = proc.mapper.occupancy.log_odds.copy()
         cleared.append(before is not None and lo.shape == before.shape and bool((lo < before - 1e-9).any()))
         before = lo
+        glass = proc.mapper.grid[proc.mapper.config.layer].copy()
+        glass_changed.append(glass_before is None or glass.shape != glass_before.shape
+                             or not np.array_equal(glass, glass_before))
+        glass_before = glass
     assert np.flatnonzero(keys).tolist() == [0, 5, 10]
-    # (beams classified as glass may raise cells on any scan: glass_hits_occupy; only key scans clear)
+    # (beams classified as glass may raise cells on a glass-map update: glass_hits_occupy; only key scans clear)
     assert np.flatnonzero(cleared).tolist() == [5, 10]
-    assert proc.mapper.scans == 12 and proc.estimator.stats.scans == 12
+    assert np.flatnonzero(glass_changed).tolist() == ([0, 5, 10] if glass_scans == "keys" else list(range(12)))
+    assert proc.estimator.stats.scans == 12
 
 
 async def test_a_failing_result_handler_ends_the_stage_with_its_error():

@@ -150,8 +150,10 @@ def test_a_bag_does_not_say_where_the_robot_started_and_the_replay_says_so(tmp_p
         r.write("/odom", M.odometry_msg(make_odom(1.0), 1), 1)
     assert start_pose_note(rec, recorded_config(rec)) is None  # a glassmap recording stores its start pose
     assert recorded_config(rec).mapping.registration_sigma == "map" and cfg.mapping.registration_sigma == "map"
-    old = tmp_path / "old.mcap"  # made before mapping.registration_sigma existed: replayed with the sigma of then
-    old_mapping = {k: v for k, v in json.loads(mapping).items() if k != "registration_sigma"}
+    assert recorded_config(rec).mapping.glass_scans == "keys"
+    old = tmp_path / "old.mcap"  # made before mapping.registration_sigma and glass_scans: replayed as then
+    old_mapping = {k: v for k, v in json.loads(mapping).items() if k not in ("registration_sigma", "glass_scans")}
     with McapRecorder(old, metadata=recording_metadata(M.TimeBase(offset_ns=0), mapping=json.dumps(old_mapping))) as r:
         r.write("/odom", M.odometry_msg(make_odom(1.0), 1), 1)
     assert recorded_config(old).mapping.registration_sigma == "anchor"
+    assert recorded_config(old).mapping.glass_scans == "all"  # every scan was registered then
