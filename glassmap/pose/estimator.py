@@ -115,6 +115,14 @@ class EstimatorConfig:
         random walk, and cancels where the route turns back; the reported covariance adds the matched cells'
         mean outer product of it (see :meth:`PoseEstimator.store_map_variance`). Only the reported covariance
         uses it (not the gate, the search window or the fusion). 0 turns it off.
+    map_switch_transfer: when a key scan matches map cells whose error model is smaller than that of the
+        cells matched before (the route comes back onto older map: a loop), the decrease (its positive
+        semi-definite part, at the current pose, in the directions the match constrains; without the systematic
+        part of ``map_bias_per_match``, which only the reported covariance uses) is added to the filter's
+        covariance before the match is gated and fused: the estimate was placed relative to the newer cells, and the older ones differ from them
+        by the drift in between (the newer were built from the older through a chain of matches), so the
+        total covariance does not drop until the matches have pulled the estimate onto the older cells. Off by
+        default (docs/pose.md, "Coming back onto older map": better on validation loops, too wide on office).
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
         share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
         off (default), the filter's own covariance (which fuses every match as independent) is reported
@@ -148,6 +156,7 @@ class EstimatorConfig:
     deskew: bool = False
     map_uncertainty: bool = True
     map_bias_per_match: float = 0.002
+    map_switch_transfer: bool = False
     correlated_matches: bool = False
     subcell_walls: bool = True
 
@@ -192,6 +201,7 @@ class EstimatorStats:
     status_reason: str = ""
     gated_streak: int = 0  # consecutive key scans whose match the gate rejected
     lost_events: int = 0  # times the track became lost
+    map_switches: int = 0  # key scans whose matched cells had a smaller error model than the last (map_switch_transfer)
     last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 
@@ -401,6 +411,8 @@ class PoseEstimator:
         if h.shape[0] == 0:
             return True
         hm = None if h.shape[0] == 3 else h
+        if cfg.map_uncertainty and cfg.map_switch_transfer and self.map_region is not None:
+            self._transfer_map_switch(pts, res.pose, h)
         z, r = self._measurement_at_state(res)
         _, _, d2 = self.ekf.innovation(z, r, hm)
         gate = cfg.gate_chi2 * _CHI2_9999_SHARE[h.shape[0]]
@@ -548,6 +560,25 @@ class PoseEstimator:
         add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
 
     # ------------------------------------------------------------------ map uncertainty
+    def _transfer_map_switch(self, pts: np.ndarray, pose: np.ndarray, h: np.ndarray | None = None) -> None:
+        """Add to the filter's covariance the decrease from the map part of the cells matched before to that
+        of the cells under ``pts`` at ``pose`` (``EstimatorConfig.map_switch_transfer``), in the directions
+        ``h`` (rows, pose space) the match constrains (default: all)."""
+        _, region = self.matched_map_covariance(pts, pose)
+        if region is None or region is self.map_region:  # no matched cell has an error model: nothing switched
+            return
+        before = self.region_covariance(self.map_region, pose, systematic=False)
+        w, v = np.linalg.eigh(before - self.region_covariance(region, pose, systematic=False))
+        if w[-1] <= 0.0:
+            return
+        drop = (v * np.maximum(w, 0.0)) @ v.T
+        if h is not None and h.shape[0] < 3:
+            proj = h.T @ np.linalg.solve(h @ h.T, h)
+            drop = proj @ drop @ proj.T
+        self.ekf.cov = self.ekf.cov + drop
+        self.ekf.actual_cov = self.ekf.actual_cov + drop
+        self.stats.map_switches += 1
+
     def matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
         """3x3 covariance (x, y, yaw; map frame) of the map region under the matched end points (base-frame
         pts at pose), and that region's error model (None when no matched cell has one).
@@ -582,13 +613,19 @@ class PoseEstimator:
         sys = np.stack([g[MAP_SYS_LAYERS[0]][cy, cx], g[MAP_SYS_LAYERS[1]][cy, cx]], axis=1).astype(np.float64)
         region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre, sys.mean(axis=0),
                            sys.T @ sys / len(sys))
-        lever = self.laser_pose_of(pose)[:2] - centre  # the robot relative to the region's pivot
+        return self.region_covariance(region, pose), region
+
+    def region_covariance(self, region: MapRegion, pose: np.ndarray, systematic: bool = True) -> np.ndarray:
+        """3x3 covariance (x, y, yaw; map frame) a robot at base ``pose`` inherits from a map region's error
+        model (see :meth:`matched_map_covariance`); ``systematic=False`` leaves out the systematic part."""
+        lever = self.laser_pose_of(pose)[:2] - region.pivot  # the robot relative to the region's pivot
         u = np.array([-lever[1], lever[0], 1.0])  # d(error)/d(d_th)
         out = region.yaw_var * np.outer(u, u)
         out[0, 0] += region.shift_var
         out[1, 1] += region.shift_var
-        out[:2, :2] += region.sys_cov
-        return out, region
+        if systematic:
+            out[:2, :2] += region.sys_cov
+        return out
 
     def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
                            end: np.ndarray | None = None) -> None:

@@ -377,3 +377,32 @@ def test_grid_holds_scan_only_when_ensure_scan_extent_would_not_grow(no_return_r
         assert not (holds and grew)
         skipped += holds
     assert skipped > 5  # (with no_return_range > 0, only scans without an inf range can skip)
+
+
+def test_coming_back_onto_older_map_moves_the_drop_of_the_map_part_into_the_filter():
+    """The last match was against cells with a shift variance of (3 cm)^2 (new map, placed after a long
+    drive); the next matches cells of the start with (2 mm)^2. The estimate is still relative to the newer
+    cells, which differ from the older by the drift in between: the filter's covariance grows by the drop,
+    (3 cm)^2 - (2 mm)^2 per axis, so the total does not fall before a match has moved the estimate. Coming
+    onto cells with a larger error model transfers nothing."""
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
+    g = est.occupancy.grid
+    g.ensure_contains(np.array([-2.0, -3.0]), np.array([8.0, 3.0]))
+    pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])
+    pose = np.array([0.0, 0.0, 0.0])
+    cells = g.world_to_cell(pts + pose[:2])
+    old, new = 0.03 ** 2, 0.002 ** 2
+    for name, val in (("pose_var_xy", new), ("pose_var_yaw", 0.0), ("pose_var_pivot_x", 0.0),
+                      ("pose_var_pivot_y", 0.0), ("pose_var_shift", new)):
+        g[name][cells[:, 1], cells[:, 0]] = val
+    est.map_region = MapRegion(shift_var=old, yaw_var=0.0, pivot=np.zeros(2))
+    before = est.ekf.cov.copy()
+    est._transfer_map_switch(pts, pose)
+    np.testing.assert_allclose(est.ekf.cov - before, np.diag([old - new, old - new, 0.0]), atol=1e-12)
+    np.testing.assert_allclose(est.ekf.actual_cov, est.ekf.cov)
+    assert est.stats.map_switches == 1
+    est.map_region = MapRegion(shift_var=1e-6, yaw_var=0.0, pivot=np.zeros(2))  # smaller than the cells'
+    after = est.ekf.cov.copy()
+    est._transfer_map_switch(pts, pose)
+    np.testing.assert_array_equal(est.ekf.cov, after)
+    assert est.stats.map_switches == 1
