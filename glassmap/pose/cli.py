@@ -241,7 +241,8 @@ def _experiment(args: argparse.Namespace) -> int:
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     sigmas = tuple(m.strip() for m in args.sigma.split(",") if m.strip())
     cfg = OnlineTrialConfig(world=args.world, route=args.route, methods=methods, glass_every=args.glass_every,
-                            glass_scans=args.glass_scans, compare_glass_scans=args.compare_glass_scans, sigmas=sigmas, loop_closure=args.loop_closure)
+                            glass_scans=args.glass_scans, compare_glass_scans=args.compare_glass_scans,
+                            sigmas=sigmas, loop_closure=args.loop_closure)
     clf = GlassClassifier.load_default()
     rows = []
     for s in tqdm(seeds, desc="online trials", unit="trial"):

@@ -119,10 +119,11 @@ class EstimatorConfig:
         cells matched before (the route comes back onto older map: a loop), the decrease (its positive
         semi-definite part, at the current pose, in the directions the match constrains; without the systematic
         part of ``map_bias_per_match``, which only the reported covariance uses) is added to the filter's
-        covariance before the match is gated and fused: the estimate was placed relative to the newer cells, and the older ones differ from them
-        by the drift in between (the newer were built from the older through a chain of matches), so the
-        total covariance does not drop until the matches have pulled the estimate onto the older cells. Off by
-        default (docs/pose.md, "Coming back onto older map": better on validation loops, too wide on office).
+        covariance before the match is gated and fused: the estimate was placed relative to the newer cells,
+        and the older ones differ from them by the drift in between (the newer were built from the older
+        through a chain of matches), so the total covariance does not drop until the matches have pulled the
+        estimate onto the older cells. Off by default (docs/pose.md, "Coming back onto older map": better on
+        validation loops, too wide on office).
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
         share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
         off (default), the filter's own covariance (which fuses every match as independent) is reported
@@ -201,7 +202,7 @@ class EstimatorStats:
     status_reason: str = ""
     gated_streak: int = 0  # consecutive key scans whose match the gate rejected
     lost_events: int = 0  # times the track became lost
-    map_switches: int = 0  # key scans whose matched cells had a smaller error model than the last (map_switch_transfer)
+    map_switches: int = 0  # key scans whose matched cells had a smaller error model (map_switch_transfer)
     last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 

@@ -43,13 +43,13 @@ GLASS_SCANS = ("keys", "every")
 @dataclass(frozen=True)
 class OnlineTrialConfig:
     """world / route: simulator world and route (None = default route); methods: names from
-    ``glassmap.eval.trial.METHODS``; glass_every: map glass on every k-th scan with ``glass_scans`` "every" (4 -> 10 Hz, the
-    glass-map experiment's rate); eval_radius (m); estimator: the pose estimator's settings; sigma_scale: multiply
-    the registration sigma (1 = as reported); glass_scans / compare_glass_scans: which scans the online maps
-    register (``GLASS_SCANS``; module docstring); sigmas: where the online registration sigma comes from
-    (:data:`~glassmap.pose.corrected.SIGMA_SOURCES`): the first feeds the methods' maps, each further one
-    adds online maps ``<method>~<source>`` of the methods whose registration reads the sigma (robust; direct
-    does not, so the trajectory and the first method's map are the same); loop_closure: also run the
+    ``glassmap.eval.trial.METHODS``; glass_every: the glass path sees every k-th scan (and every key scan;
+    4 -> 10 Hz, the glass-map experiment's rate); eval_radius (m); estimator: the pose estimator's settings;
+    sigma_scale: multiply the registration sigma (1 = as reported); glass_scans / compare_glass_scans: which
+    scans the online maps register (``GLASS_SCANS``; module docstring); sigmas: where the online registration
+    sigma comes from (:data:`~glassmap.pose.corrected.SIGMA_SOURCES`): the first feeds the methods' maps, each
+    further one adds online maps ``<method>~<source>`` of the methods whose registration reads the sigma
+    (robust; direct does not, so the trajectory and the first method's map are the same); loop_closure: also run the
     pose-graph back end (``backend``) and score the maps rebuilt from the key scans with and without its
     correction (module docstring)."""
 
@@ -237,7 +237,8 @@ def _on_blueprint(mapper, bp) -> np.ndarray:
 
 
 def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: str = "robust3",
-            suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")) -> list[dict]:
+            suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")
+            ) -> list[dict]:
     """For each map kind (method-name suffix) present in ``summary`` (:func:`glassmap.eval.experiment.summarise`
     rows): ``other``'s mean / worst / std of the error against ``base``'s, as relative gains (positive:
     ``other`` is lower), and whether ``other`` beats ``base`` in all three."""
@@ -253,7 +254,8 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
 
 
 def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...] = ("robust3", "robust3~anchor"),
-                  suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")) -> tuple[list[dict], list[dict]]:
+                  suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")
+                  ) -> tuple[list[dict], list[dict]]:
     """Per world (the rows' ``world``) and per map kind: each of ``others``' margins over ``base``
     (:func:`margins`); and over the worlds, per (other, maps): the mean margin, the worst world's margin
     (lowest gain) and that world, and how many worlds it beats ``base`` in mean, worst and std together."""
