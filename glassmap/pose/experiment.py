@@ -116,9 +116,9 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
                         mappers[f"{m}~{src}"] = GlassMapper(est.occupancy, MapperConfig(
                             layer=f"glass_{m}~{src}", **METHODS[m]), classifier=classifier)
             state["mappers"] = mappers
-            state["other"] = other = next(g for g in GLASS_SCANS if g != cfg.glass_scans)
-            state["other_mappers"] = {f"{m}@{other}-online": GlassMapper(est.occupancy, MapperConfig(
-                layer=f"glass_{m}@{other}-online", **METHODS[m]), classifier=classifier)
+            state["other_kind"] = kind = next(g for g in GLASS_SCANS if g != cfg.glass_scans)
+            state["other_mappers"] = {f"{m}@{kind}-online": GlassMapper(est.occupancy, MapperConfig(
+                layer=f"glass_{m}@{kind}-online", **METHODS[m]), classifier=classifier)
                 for m in (cfg.methods if cfg.compare_glass_scans else ())}
             first = next(iter(mappers.values()))
             est.protect_mask_fn = first.protect_mask
@@ -149,7 +149,7 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
             beams, use = first.classify(scan)
         first.mark_glass_hits(beams, use, scan, lp)  # on every scan the glass path sees, as the runtime
         main = now[cfg.glass_scans]
-        other = bool(other_mappers) and now[state["other"]]
+        other = bool(other_mappers) and now[state["other_kind"]]
         if not main and not other:
             return
         sigma = {src: cfg.sigma_scale * online_sigma(est, est_pose, scan.ranges, src) for src in cfg.sigmas}
