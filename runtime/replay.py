@@ -9,6 +9,8 @@ Each scan gets the odometry that preceded it in the file, which is what the live
 (see :mod:`runtime.pipeline`). With ``as_recorded`` (default for glassmap recordings) only the scans the
 live run processed (those with a /pose) are processed, so dropped scans stay dropped and the maps match.
 Many files or settings run through :func:`replay_many` (processes on this machine, or a Dask cluster).
+The file is read and decoded in the replaying thread, between scans: a reader thread ahead of it took the
+interpreter lock in turns with the processing and cost more CPU than it saved (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -98,51 +100,6 @@ def recorded_config(path: str | Path, base: RuntimeConfig | None = None) -> Runt
     return cfg
 
 
-def prefetch(items: Iterator, depth: int = 64, batch: int = 16) -> Iterator:
-    """Run ``items`` (file reading and decoding) in a thread, ``depth`` items ahead of the consumer, handed
-    over in lists of ``batch`` (each thread wakes the other once a list, not once an item)."""
-    import queue
-    import threading
-
-    q: queue.Queue = queue.Queue(maxsize=max(1, depth // batch))
-    done = object()
-    stop = threading.Event()
-
-    def work() -> None:
-        buf: list = []
-        try:
-            for it in items:
-                if stop.is_set():
-                    return
-                buf.append(it)
-                if len(buf) >= batch:
-                    q.put(buf)
-                    buf = []
-            q.put(buf)
-            q.put(done)
-        except BaseException as exc:  # handed to the consumer, after the items read before it
-            q.put(buf)
-            q.put(exc)
-
-    t = threading.Thread(target=work, name="replay-reader", daemon=True)
-    t.start()
-    try:
-        while True:
-            it = q.get()
-            if it is done:
-                return
-            if isinstance(it, BaseException):
-                raise it
-            yield from it
-    finally:
-        stop.set()
-        while t.is_alive():  # unblock a producer waiting on a full queue
-            try:
-                q.get_nowait()
-            except queue.Empty:
-                t.join(0.05)
-
-
 def iter_source(path: str | Path, source: str = "messages") -> Iterator[Scan | Odometry]:
     if source == "messages":
         return iter_messages(path)
@@ -217,7 +174,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     freeze_startup()
     t0 = time.perf_counter()
     try:
-        for item in prefetch(iter_source(path, source)):
+        for item in iter_source(path, source):
             if isinstance(item, Odometry):
                 pending.append(item)
                 res.odometry += 1

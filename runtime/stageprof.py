@@ -4,12 +4,11 @@
 to add up the CPU time of the calling thread (``time.thread_time``: other processes and threads do not
 inflate it, so the figures hold on a shared machine) and their calls. Stages nest (the table shows them
 indented under their parent); each figure is inclusive of the stages below it. The wrappers cost ~1 us a
-call, so the processing thread's total is a little higher than in a plain replay. The CPU time of the whole
-process from the first scan to the last (reading and decoding in the replay's reader thread included),
-per scan, gives the replay's rate on one core (issue 19's target: 400 scans/s from the raw bytes); it is
-split into the processing thread (the stages and the replay loop), the replay's reader thread (reading
-and decoding the recording; its CPU time from /proc/self/task/<tid>/schedstat, Linux) and the rest (other
-threads: the likelihood-field worker).
+call, so the processing's total is a little higher than in a plain replay. The CPU time of the whole process
+from the first scan to the last, per scan, gives the replay's rate on one core (issue 19's target: 400
+scans/s from the raw bytes); it is split into the processing (the stages and the replay loop), reading and
+decoding the recording (in the same thread, between scans: each item taken from the source, timed by the
+thread's clock) and the rest (other threads: the likelihood-field worker).
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -48,13 +46,12 @@ class StageTimes:
     calls: dict[str, int] = field(default_factory=dict)
     scans: int = 0
     process_cpu: float = 0.0  # all threads of this process from the first scan to the last (reading, decoding, ...)
-    processing_cpu: float = 0.0  # the processing thread over the same span (stages and the replay loop)
-    reader_cpu: float = 0.0  # the replay's reader thread over the same span (reading, decoding)
+    processing_cpu: float = 0.0  # the replaying thread over the same span, reading excluded (stages, replay loop)
+    reader_cpu: float = 0.0  # reading and decoding the recording over the same span (the replaying thread)
     wall: float = 0.0
     span: list[float] = field(default_factory=list)  # process CPU time at the first scan's start, the last one's end
-    thread_span: list[float] = field(default_factory=list)  # the same, CPU time of the processing thread
-    reader_span: list[float | None] = field(default_factory=list)  # the same, of the reader thread (or None)
-    reader_tid: int | None = None  # native id of the replay's reader thread
+    thread_span: list[float] = field(default_factory=list)  # the same, CPU time of the replaying thread
+    reading: list[float] = field(default_factory=lambda: [0.0, 0.0])  # reading CPU so far, and at the last scan's end
 
     def table(self) -> str:
         """Markdown table: stage, calls, mean CPU ms per scan, share of the whole scan."""
@@ -69,8 +66,8 @@ class StageTimes:
         rows.append(f"| all threads of the process from the first scan to the last (reading, decoding, processing) | | "
                     f"{1e3 * self.process_cpu / n:.3f} | |")
         rest = self.process_cpu - self.processing_cpu - self.reader_cpu
-        for label, t in (("processing thread (the stages above, the replay loop)", self.processing_cpu),
-                         ("reader thread: reading and decoding the recording", self.reader_cpu),
+        for label, t in (("processing (the stages above, the replay loop)", self.processing_cpu),
+                         ("reading and decoding the recording (same thread, between scans)", self.reader_cpu),
                          ("other threads (likelihood-field worker, ...)", rest)):
             rows.append(f"| {'&nbsp;' * 4}{label} | | {1e3 * t / n:.3f} | |")
         if self.process_cpu > 0:
@@ -120,7 +117,6 @@ def _timed(fn, label: str, times: StageTimes, scan: list[int]):
             if not times.span:
                 times.span[:] = [time.process_time()] * 2
                 times.thread_span[:] = [time.thread_time()] * 2
-                times.reader_span[:] = [_thread_cpu(times.reader_tid)] * 2
         t = time.thread_time()
         try:
             return fn(*args, **kwargs)
@@ -133,16 +129,8 @@ def _timed(fn, label: str, times: StageTimes, scan: list[int]):
                 scan[0] -= 1
                 times.span[1] = time.process_time()
                 times.thread_span[1] = t1
+                times.reading[1] = times.reading[0]
     return wrapper
-
-
-def _thread_cpu(tid: int | None) -> float | None:
-    """CPU seconds of thread ``tid`` (native id) of this process so far; None if unknown or ended."""
-    try:
-        with open(f"/proc/self/task/{tid}/schedstat") as f:
-            return int(f.read().split()[0]) * 1e-9
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def stage_profile(recording: str, source: str = "messages") -> StageTimes:
@@ -152,11 +140,18 @@ def stage_profile(recording: str, source: str = "messages") -> StageTimes:
     times = StageTimes()
     source_items = replay.iter_source
 
-    def timed_source(*args, **kwargs):  # runs in the replay's reader thread
-        times.reader_tid = threading.get_native_id()
-        yield from source_items(*args, **kwargs)
-        if times.reader_span:
-            times.reader_span[1] = _thread_cpu(times.reader_tid)
+    def timed_source(*args, **kwargs):  # reading and decoding, timed once the first scan has started
+        items = iter(source_items(*args, **kwargs))
+        while True:
+            t = time.thread_time()
+            try:
+                item = next(items)
+            except StopIteration:
+                return
+            finally:
+                if times.span:
+                    times.reading[0] += time.thread_time() - t
+            yield item
 
     replay.iter_source = timed_source
     try:
@@ -165,8 +160,8 @@ def stage_profile(recording: str, source: str = "messages") -> StageTimes:
     finally:
         replay.iter_source = source_items
     times.process_cpu = times.span[1] - times.span[0] if times.span else 0.0
-    times.processing_cpu = times.thread_span[1] - times.thread_span[0] if times.thread_span else 0.0
-    start, end = times.reader_span or (None, None)
-    times.reader_cpu = max(end - start, 0.0) if start is not None and end is not None else 0.0
+    thread_cpu = times.thread_span[1] - times.thread_span[0] if times.thread_span else 0.0
+    times.reader_cpu = times.reading[1]
+    times.processing_cpu = thread_cpu - times.reader_cpu
     times.scans, times.wall = r.scans, r.wall_time
     return times

@@ -13,10 +13,10 @@ def test_stage_profile_times_every_scan_and_restores_the_functions(tmp_path):
     assert t.scans == 12 and t.calls[whole] == 12 and t.calls[glass] == 12
     assert t.calls["incidence angles (split-merge)"] == 12  # the replay's warm-up is not counted
     assert 0 < t.cpu[glass] <= t.cpu[whole] <= t.process_cpu
-    # the processing thread's share holds the whole scans, the reader thread's is a part of the rest
-    assert t.cpu[whole] <= t.processing_cpu <= t.process_cpu and 0 <= t.reader_cpu <= t.process_cpu
+    # the processing holds the whole scans; reading is timed apart from it, in the same thread
+    assert t.cpu[whole] <= t.processing_cpu <= t.process_cpu and 0 < t.reader_cpu <= t.process_cpu
     table = t.table().splitlines()
-    # + the process's CPU per scan, its three parts (processing, reader, other threads), that as scans/s
+    # + the process's CPU per scan, its three parts (processing, reading, other threads), that as scans/s
     assert len(table) == 2 + len(STAGES) + 5
     assert table[-1].endswith(f"| {t.scans / t.process_cpu:.0f} | |")
     assert all(label in t.table() for _, label, _, _ in STAGES)
