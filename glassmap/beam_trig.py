@@ -7,7 +7,7 @@ element the same number whatever else is in the array, so ``cos[idx]`` is ``np.c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -21,23 +21,31 @@ class BeamTrig:
     cos: np.ndarray
     sin: np.ndarray
     median_step: float
+    source: np.ndarray | None = None  # the array given, when read-only and owning its data (cannot change)
 
 
 _last: BeamTrig | None = None  # replaced whole (one assignment), so threads sharing it see one or the other
 
 
 def beam_trig(angles: np.ndarray) -> BeamTrig:
-    """The :class:`BeamTrig` of ``angles`` (n,) rad: the last one if the values are the same (NaN never is)."""
+    """The :class:`BeamTrig` of ``angles`` (n,) rad: the last one if the values are the same (NaN never is);
+    for the array it was made from, when that is read-only and owns its data (e.g. ``Scan.angles``), the
+    values are not compared."""
     global _last
     a = np.asarray(angles, dtype=np.float64)
     last = _last
+    if last is not None and a is last.source:
+        return last
+    fixed = a if not a.flags.writeable and a.flags.owndata else None
     if last is not None and last.angles.shape == a.shape and np.array_equal(last.angles, a):
+        if fixed is not None:
+            _last = last = replace(last, source=fixed)
         return last
     a = a.copy()
     c, s = np.cos(a), np.sin(a)
     for v in (a, c, s):
         v.flags.writeable = False
-    _last = BeamTrig(a, c, s, median_step(a))
+    _last = BeamTrig(a, c, s, median_step(a), fixed)
     return _last
 
 

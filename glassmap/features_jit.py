@@ -52,6 +52,34 @@ def segment_order(seg: np.ndarray, n_seg: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 @_jit
+def _max_table(w: np.ndarray, levels: int) -> np.ndarray:
+    """Sparse table of running maxima: row k, column i holds max(w[i : i + 2^k]) (clipped at the end)."""
+    n = w.shape[0]
+    table = np.empty((levels + 1, n))
+    table[0] = w
+    for k in range(1, levels + 1):
+        span = 1 << (k - 1)
+        for i in range(n):
+            a = table[k - 1, i]
+            if i + span < n:
+                c = table[k - 1, i + span]
+                a = a if a >= c else c
+            table[k, i] = a
+    return table
+
+
+@_jit
+def _window_max(table: np.ndarray, lo: int, hi: int) -> float:
+    """max(w[lo : hi + 1]) from :func:`_max_table` (the window no longer than twice its last level's span)."""
+    k = 0
+    while k + 1 < table.shape[0] and (2 << k) <= hi - lo + 1:
+        k += 1
+    a = table[k, lo]
+    c = table[k, hi - (1 << k) + 1]
+    return a if a >= c else c
+
+
+@_jit
 def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.ndarray, e: np.ndarray,
                     lei: np.ndarray, order: np.ndarray, starts: np.ndarray, lsum: np.ndarray, px: np.ndarray,
                     py: np.ndarray) -> np.ndarray:
@@ -88,21 +116,19 @@ def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.
             x[b, 5] = 0.0
         x[b, 3] = 2.0 if two[b] else 1.0
     # neighbours along the scan (beams without a reading count as the centre's value)
+    w = np.empty(n)  # what a window's maximum is taken over: li where the beam has a reading
+    for b in range(n):
+        v = li[b]
+        w[b] = v if math.isfinite(r[b]) and v == v else -np.inf
+    table = _max_table(w, 4)  # windows of up to 2 * 2^4 beams
     for b in range(n):
         lb = li[b]
         for j, k in enumerate((-2, -1, 1, 2)):
             q = b + k
             d = li[q] - lb if 0 <= q < n and math.isfinite(r[q]) else np.nan
             x[b, 6 + j] = d if d == d else 0.0
-        m3 = -np.inf
-        m10 = -np.inf
-        for q in range(max(b - 10, 0), min(b + 11, n)):
-            if math.isfinite(r[q]):
-                v = li[q]
-                if v > m10:
-                    m10 = v
-                if abs(q - b) <= 3 and v > m3:
-                    m3 = v
+        m3 = _window_max(table, max(b - 3, 0), min(b + 3, n - 1))
+        m10 = _window_max(table, max(b - 10, 0), min(b + 10, n - 1))
         x[b, 10] = max(m3, lb) - lb
         x[b, 11] = max(m10, lb) - lb
         hi = r[b + 1] if b + 1 < n else r[n - 1]

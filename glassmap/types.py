@@ -8,9 +8,19 @@ are kept separately where a device has one.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@functools.lru_cache(maxsize=8)
+def beam_angles(angle_min: float, angle_increment: float, n: int) -> np.ndarray:
+    """``angle_min + angle_increment * arange(n)`` (rad), read-only and shared: a laser sends the same beam
+    angles in every scan, so each scan's ``angles`` is the same array object."""
+    a = angle_min + angle_increment * np.arange(n)
+    a.flags.writeable = False
+    return a
 
 
 @dataclass(frozen=True)
@@ -30,8 +40,8 @@ class LaserGeometry:
 
     @property
     def angles(self) -> np.ndarray:
-        """Beam angles in the laser frame (rad), shape (n_beams,)."""
-        return self.angle_min + self.angle_increment * np.arange(self.n_beams)
+        """Beam angles in the laser frame (rad), shape (n_beams,), read-only."""
+        return beam_angles(self.angle_min, self.angle_increment, self.n_beams)
 
     @property
     def time_increment(self) -> float:
@@ -71,9 +81,9 @@ class Scan:
 
     @property
     def angles(self) -> np.ndarray:
-        """Beam angles (rad, laser frame) for the beams in ``ranges``."""
+        """Beam angles (rad, laser frame) for the beams in ``ranges``, read-only."""
         g = self.geometry
-        return g.angle_min + g.angle_increment * np.arange(self.ranges.shape[0])
+        return beam_angles(g.angle_min, g.angle_increment, self.ranges.shape[0])
 
 
 @dataclass

@@ -35,10 +35,23 @@ def test_other_angles_get_their_own_values():
     assert v.median_step == float(np.median(np.diff(c)))
     b[3] = np.nan  # NaN never equals itself: computed again, never mixed up
     assert beam_trig(b) is not beam_trig(b)
+    m = a.copy()
+    t = beam_trig(m)
+    m[0] = 5.0  # the caller's array changes after the call: the kept copy does not
+    assert beam_trig(a).cos is t.cos and t.angles[0] == a[0] and t.cos[0] == np.cos(a[0])  # kept
+
+
+def test_a_lasers_angles_are_one_read_only_array_that_is_not_compared_again(monkeypatch):
+    a = LaserGeometry().angles
+    assert a is LaserGeometry().angles and not a.flags.writeable  # the same array for every scan
+    assert LaserGeometry(n_beams=721).angles is not a
     t = beam_trig(a)
-    a[0] = 5.0  # the caller's array changes after the call: the kept copy does not
-    fresh = LaserGeometry().angles
-    assert beam_trig(fresh) is t and t.angles[0] == fresh[0] and t.cos[0] == np.cos(fresh[0])
+
+    def no_compare(*args):
+        raise AssertionError("values compared")
+
+    monkeypatch.setattr(np, "array_equal", no_compare)
+    assert beam_trig(a) is t
 
 
 def test_median_step_of_uneven_and_short_arrays():
