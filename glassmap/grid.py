@@ -15,6 +15,7 @@ import numpy as np
 from .grid_jit import free_and_hit_update
 
 _NO_PROTECT = np.zeros(0, dtype=bool)
+_NO_SEEN = np.zeros(0, dtype=np.uint8)
 
 
 class MapGrid:
@@ -145,6 +146,10 @@ class OccupancyGrid:
         self.params = params
         if self.LAYER not in self.grid.layer_names:
             self.grid.add_layer(self.LAYER, 0.0, np.float32)
+        self._seen = _NO_SEEN  # scratch of integrate(): one byte per cell, kept between scans
+
+    def __getstate__(self) -> dict:  # the scratch does not travel (copies, process pools)
+        return {**self.__dict__, "_seen": _NO_SEEN}
 
     @property
     def log_odds(self) -> np.ndarray:
@@ -201,11 +206,13 @@ class OccupancyGrid:
         fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
         fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
         hc = g.world_to_cell(ends[hit])
-        free_and_hit_update(lo.reshape(-1), _NO_PROTECT if protect is None else protect.reshape(-1), w, fx, fy,
-                            (c[clear] / g.resolution).astype(np.float32),
+        if self._seen.shape[0] != lo.size:
+            self._seen = np.zeros(lo.size, np.uint8)
+        free_and_hit_update(lo.reshape(-1), _NO_PROTECT if protect is None else protect.reshape(-1), self._seen,
+                            w, fx, fy, (c[clear] / g.resolution).astype(np.float32),
                             (s[clear] / g.resolution).astype(np.float32), counts, np.float32(step),
-                            np.float32(p.l_free), hc[:, 1] * w + hc[:, 0], np.float32(p.l_occ))
-        np.clip(lo, p.l_min, p.l_max, out=lo)
+                            np.float32(p.l_free), hc[:, 1] * w + hc[:, 0], np.float32(p.l_occ),
+                            np.float32(p.l_min), np.float32(p.l_max))
         return int(clear.sum())
 
     def ensure_scan_extent(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,

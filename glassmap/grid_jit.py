@@ -15,18 +15,23 @@ _jit = njit(cache=True, nogil=True, error_model="numpy")
 
 
 @_jit
-def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, w: int, fx: np.float32, fy: np.float32,
-                        dx: np.ndarray, dy: np.ndarray, counts: np.ndarray, step: np.float32, l_free: np.float32,
-                        hit_cells: np.ndarray, l_occ: np.float32) -> None:
+def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, seen: np.ndarray, w: int, fx: np.float32,
+                        fy: np.float32, dx: np.ndarray, dy: np.ndarray, counts: np.ndarray, step: np.float32,
+                        l_free: np.float32, hit_cells: np.ndarray, l_occ: np.float32, l_min: np.float32,
+                        l_max: np.float32) -> None:
     """Add ``l_free`` once to every cell the clearing beams cross and then ``l_occ`` once to every cell in
-    ``hit_cells``, in place on the flat float32 log-odds ``lo``.
+    ``hit_cells``, in place on the flat float32 log-odds ``lo``; then clamp the cells changed to
+    [``l_min``, ``l_max``] (the other cells are within them already: every update clamps what it changed).
 
     Beam b is sampled at t = i * step cells, i = 0 .. counts[b] - 1, from the laser at (fx, fy) (cells from
     the grid's corner) along (dx[b], dy[b]) (its direction over the resolution); a sample lies in cell
     (floor(fx + dx t), floor(fy + dy t)). Cells marked in the flat bool ``protect`` (size 0: none) are not
-    lowered. Samples off the grid are skipped (the caller grew the grid to hold the scan)."""
+    lowered. Samples off the grid are skipped (the caller grew the grid to hold the scan). ``seen``: flat
+    uint8 scratch of the grid's size, all 0 (and all 0 again on return), so that the cost follows the
+    scan, not the size of the map."""
     size = lo.shape[0]
-    seen = np.zeros(size, np.uint8)  # 1: lowered this scan, 2: raised this scan
+    touched = np.empty(counts.sum() + hit_cells.shape[0], np.int64)  # cells changed (at most one per sample)
+    n = 0
     guard = protect.shape[0] > 0
     for b in range(counts.shape[0]):
         cx, cy = dx[b], dy[b]
@@ -41,14 +46,27 @@ def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, w: int, fx: np.floa
             last = cell
             if cell < 0 or cell >= size or seen[cell] == 1 or (guard and protect[cell]):
                 continue
-            seen[cell] = 1
+            seen[cell] = 1  # 1: lowered this scan, 2: raised this scan
+            touched[n] = cell
+            n += 1
             lo[cell] = lo[cell] + l_free
     for j in range(hit_cells.shape[0]):
         cell = hit_cells[j]
         if cell < 0 or cell >= size or seen[cell] == 2:
             continue
+        if seen[cell] == 0:
+            touched[n] = cell
+            n += 1
         seen[cell] = 2
         lo[cell] = lo[cell] + l_occ
+    for k in range(n):  # as np.clip (NaN stays NaN)
+        cell = touched[k]
+        v = lo[cell]
+        if v < l_min:
+            lo[cell] = l_min
+        elif v > l_max:
+            lo[cell] = l_max
+        seen[cell] = 0
 
 
 @_jit

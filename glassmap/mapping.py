@@ -229,11 +229,12 @@ class GlassMapper:
         x, y = ex[glass], ey[glass]
         g = self.grid
         g.ensure_contains(*_box(x, y, 1.0))
-        # the cells of MapGrid.world_to_cell; log-odds raised as by np.maximum (compiled: glassmap/grid_jit.py)
+        # the cells of MapGrid.world_to_cell; log-odds raised as by np.maximum (compiled: glassmap/grid_jit.py),
+        # never above l_max (OccupancyGrid.integrate clamps only the cells it changes)
         marks = self.grid[self.hits_layer].reshape(-1) if self.config.protect == "hits" else _NO_MARKS
+        op = self.occupancy.params
         raise_end_cells(self.occupancy.log_odds.reshape(-1), marks, x, y, float(g.origin[0]), float(g.origin[1]),
-                        g.resolution, g.shape[1], np.float32(self.occupancy.params.l_occ),
-                        self.config.glass_hits_occupy)
+                        g.resolution, g.shape[1], np.float32(min(op.l_occ, op.l_max)), self.config.glass_hits_occupy)
         return n_sel
 
     def warm_up(self, scan: Scan) -> None:

@@ -1,6 +1,6 @@
 """The compiled occupancy update (glassmap/grid_jit.py) gives the log-odds of the numpy ray walk it
 replaced to the last bit: beams that cross each other's cells, hits, no-return beams, NaN, a protect mask,
-growth of the grid, values clamped at the limits."""
+growth of the grid, values clamped at the limits (only the cells a scan changes are clamped)."""
 
 import numpy as np
 
@@ -67,4 +67,5 @@ def test_integrate_equals_the_numpy_ray_walk_to_the_bit():
             assert n_a == n_b and a.grid.shape == b.grid.shape
             np.testing.assert_array_equal(a.grid.origin, b.grid.origin)
             np.testing.assert_array_equal(a.log_odds, b.log_odds)
+            assert a._seen.size == a.log_odds.size and not a._seen.any()  # the scratch is left clean
         assert (a.log_odds == params.l_min).any() and (a.log_odds == params.l_max).any()  # limits reached
