@@ -244,7 +244,11 @@ class GlassMapper:
         grid = MapGrid(resolution=self.grid.resolution)
         scratch = GlassMapper(OccupancyGrid(grid, self.occupancy.params), self.config, classifier=self.classifier)
         scratch._fallback = self._fallback
-        scratch.process(scan, np.zeros(3), 0.05)
+        beams = scratch.process(scan, np.zeros(3), 0.05)
+        # the glass hits' kernel runs only once a beam looks like glass, which this scan need not show
+        n = scan.ranges.shape[0]
+        scratch.mark_glass_hits(BeamGlass(np.ones(n), beams.incidence, n_beams=n), np.isfinite(scan.ranges), scan,
+                                np.zeros(3))
         self._fallback = scratch._fallback
 
     # -- the per-scan path ---------------------------------------------------------------------------------

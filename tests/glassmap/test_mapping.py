@@ -167,6 +167,22 @@ def test_register_false_classifies_and_keeps_glass_hits_but_leaves_the_glass_map
     assert b.n_registered == b.n_classified and np.any(m.glass.log_odds)
 
 
+def test_warm_up_runs_the_glass_hit_path_and_leaves_the_maps_alone(clf, monkeypatch):
+    m = GlassMapper(classifier=clf)
+    hits = []
+    mark = GlassMapper.mark_glass_hits
+
+    def spy(self, *args, **kwargs):
+        hits.append(mark(self, *args, **kwargs))
+        return hits[-1]
+
+    monkeypatch.setattr(GlassMapper, "mark_glass_hits", spy)
+    snap = snapshot(m)
+    m.warm_up(box_scan())  # painted walls only: no beam looks like glass
+    assert hits and max(hits) > 0  # the glass-hit kernel ran all the same (its first call loads it)
+    assert same(m, snap) and m.scans == 0
+
+
 def test_glass_layer_follows_grid_growth(clf):
     m = GlassMapper(OccupancyGrid(MapGrid(0.05, (-2.0, -2.0), (80, 80), grow_step_m=2.0)), MapperConfig(),
                     classifier=clf)
