@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from glassmap.grid import OccupancyGrid
-from glassmap.pose.field_jit import forward_maximum
+from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
@@ -160,17 +160,17 @@ class LikelihoodField:
             cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
             inner = field[pad:-pad, pad:-pad]
             ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
-            ddy = ny - np.arange(occ.shape[0], dtype=ny.dtype)[:, None]  # cells to the nearest occupied cell
-            ddx = nx - np.arange(occ.shape[1], dtype=nx.dtype)[None, :]
             cut_c = int(np.ceil(cut / res))
-            near = np.nonzero(ddx * ddx + ddy * ddy <= cut_c * cut_c)
-            ny, nx, ddy, ddx = ny[near], nx[near], ddy[near], ddx[near]
+            # the cells within cut_c cells of their nearest occupied cell (ny, nx), and the offset (ddy, ddx)
+            # to it in cells
+            iy, ix, ny, nx, ddy, ddx = near_cells(ny, nx, cut_c * cut_c)
+            near = (iy, ix)
             points, pool = inputs.points, p.pool
             if points is None:  # no end-point layers: one point at the centre of each occupied cell (cell
                 cnt0 = occ.astype(np.float64)  # centres carry no measurement bias: nothing to pool)
                 points, pool = (0.5 * res * cnt0, 0.5 * res * cnt0, cnt0), 0
             # the wall point and normal are needed only at the occupied cells some near cell is closest to
-            u, inv = np.unique(ny.astype(np.int64) * occ.shape[1] + nx, return_inverse=True)
+            u, inv = unique_cells(ny, nx, occ.shape[0], occ.shape[1])  # np.unique(flat, return_inverse=True)
             uy, ux = np.divmod(u, occ.shape[1])
             sx, sy, c, nrm = self._pooled(points, res, pool, uy, ux)
             has = c > 0
@@ -217,20 +217,15 @@ class LikelihoodField:
         wall (up to half a cell between two cells' points): a false along-wall constraint in corridors and a
         bias wherever the points sit unevenly in their cells."""
         sx, sy, cnt = (np.asarray(a) for a in points)
-        h, w = cnt.shape
         if k <= 0 and not self.params.line_normals:
             return (sx[cy, cx].astype(np.float64), sy[cy, cx].astype(np.float64), cnt[cy, cx].astype(np.float64),
                     None)
         r = max(k, 2 if self.params.line_normals else 0)
         d = np.arange(-r, r + 1)
-        dy, dx = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))
-        yy, xx = cy[:, None] + dy[None, :], cx[:, None] + dx[None, :]  # (U, (2r + 1)^2) neighbours
-        inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
-        yy, xx = np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)
-        c = np.where(inside, cnt[yy, xx], 0).astype(np.float64)
-        # offsets from the requested cell's corner: a neighbour (+i, +j) cells away adds count * (i, j) * res
-        ax = np.where(inside, sx[yy, xx], 0) + c * (dx * res)[None, :]
-        ay = np.where(inside, sy[yy, xx], 0) + c * (dy * res)[None, :]
+        dy, dx = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))  # the (2r + 1)^2 neighbours, row-major
+        # (U, (2r + 1)^2): counts, and offsets from the requested cell's corner (a neighbour (+i, +j) cells
+        # away adds count * (i, j) * res), 0 off the grid
+        c, ax, ay = neighbour_sums(sx, sy, cnt, cy, cx, r, res)
         if k > 0:
             m = ((np.abs(dy) <= k) & (np.abs(dx) <= k)).astype(np.float64)
             out = (ax @ m, ay @ m, c @ m)

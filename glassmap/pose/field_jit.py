@@ -1,7 +1,9 @@
 """Compiled passes of the likelihood field (:mod:`glassmap.pose.field`), numba ``njit``.
 
 A maximum is exact, so the result equals scipy's to the last bit whatever the order of the comparisons (the
-field holds no NaN). Compiled code is cached on disk (``cache=True``).
+field holds no NaN); the other passes do the integer arithmetic and the floating-point operations of the
+numpy code they replaced, in the same order (no fast-math), so their results are the same to the last bit.
+Compiled code is cached on disk (``cache=True``).
 """
 
 from __future__ import annotations
@@ -39,7 +41,89 @@ def forward_maximum(a: np.ndarray, f: int) -> np.ndarray:
     return out
 
 
+@_jit
+def near_cells(ny: np.ndarray, nx: np.ndarray, cut2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                   np.ndarray, np.ndarray, np.ndarray]:
+    """The cells (row-major order, as ``np.nonzero``) whose nearest occupied cell (``ny``, ``nx``: (H, W)
+    int32 rows and columns of it, from the distance transform) lies within sqrt(``cut2``) cells: their rows
+    and columns (int64), the nearest cell's row and column and the offset to it (ddy, ddx) (int32)."""
+    h, w = ny.shape
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            dy = ny[y, x] - np.int32(y)
+            dx = nx[y, x] - np.int32(x)
+            if dx * dx + dy * dy <= cut2:
+                n += 1
+    iy = np.empty(n, np.int64)
+    ix = np.empty(n, np.int64)
+    oy = np.empty(n, np.int32)
+    ox = np.empty(n, np.int32)
+    ddy = np.empty(n, np.int32)
+    ddx = np.empty(n, np.int32)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            dy = ny[y, x] - np.int32(y)
+            dx = nx[y, x] - np.int32(x)
+            if dx * dx + dy * dy <= cut2:
+                iy[k], ix[k], oy[k], ox[k], ddy[k], ddx[k] = y, x, ny[y, x], nx[y, x], dy, dx
+                k += 1
+    return iy, ix, oy, ox, ddy, ddx
+
+
+@_jit
+def unique_cells(oy: np.ndarray, ox: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(oy * w + ox, return_inverse=True)`` for cells (oy, ox) of an (h, w) grid: the distinct
+    flat indices in increasing order, and for each input the position of its own among them."""
+    slot = np.full(h * w, -1, np.int32)
+    for k in range(oy.shape[0]):
+        slot[np.int64(oy[k]) * w + ox[k]] = 0
+    n = 0
+    for f in range(h * w):
+        if slot[f] == 0:
+            slot[f] = n
+            n += 1
+    u = np.empty(n, np.int64)
+    inv = np.empty(oy.shape[0], np.int64)
+    for k in range(oy.shape[0]):
+        f = np.int64(oy[k]) * w + ox[k]
+        u[slot[f]] = f
+        inv[k] = slot[f]
+    return u, inv
+
+
+@_jit
+def neighbour_sums(sx: np.ndarray, sy: np.ndarray, cnt: np.ndarray, cy: np.ndarray, cx: np.ndarray, r: int,
+                   res: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each requested cell (cy[u], cx[u]) and each of the (2 r + 1)^2 neighbours (dy, dx) (row-major,
+    dy and dx from -r to r): the neighbour's count c and its sums of x and y offsets moved to the requested
+    cell's corner, sx + c * dx * res and sy + c * dy * res (m), 0 off the grid; (U, (2 r + 1)^2) float64
+    each. ``sx``, ``sy``, ``cnt``: (H, W) float32 end-point layers."""
+    h, w = cnt.shape
+    m = 2 * r + 1
+    c = np.empty((cy.shape[0], m * m))
+    ax = np.empty((cy.shape[0], m * m))
+    ay = np.empty((cy.shape[0], m * m))
+    for u in range(cy.shape[0]):
+        for j in range(m * m):
+            dy = j // m - r
+            dx = j % m - r
+            y = cy[u] + dy
+            x = cx[u] + dx
+            inside = 0 <= y < h and 0 <= x < w
+            cv = np.float64(cnt[y, x]) if inside else 0.0
+            c[u, j] = cv
+            ax[u, j] = (np.float64(sx[y, x]) if inside else 0.0) + cv * (np.float64(dx) * res)
+            ay[u, j] = (np.float64(sy[y, x]) if inside else 0.0) + cv * (np.float64(dy) * res)
+    return c, ax, ay
+
+
 def warm_up() -> None:
-    """Load (or, the first time on a machine, compile) the kernel now, with the argument types the field
+    """Load (or, the first time on a machine, compile) the kernels now, with the argument types the field
     passes, rather than at the first rebuild."""
     forward_maximum(np.zeros((1, 1), np.float32), 1)
+    near_cells(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), 1)
+    unique_cells(np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1)
+    layer = np.zeros((1, 1), np.float32)
+    neighbour_sums(layer, layer, layer, np.zeros(1, np.int64), np.zeros(1, np.int64), 1, 0.05)
