@@ -1,4 +1,4 @@
-"""glassmap bench's memory figures: each run's own peak."""
+"""glassmap bench: each run's own peak memory, the machine line, the replay pinned to one core."""
 
 from __future__ import annotations
 
@@ -29,3 +29,15 @@ def test_machine_reference_names_the_cpu_and_times_the_workload():
     line = machine_reference()
     m = re.fullmatch(r"machine: (.+), (\d+) cores; reference workload \(3 M Python additions\) (\d+) ms", line)
     assert m and m.group(1) and int(m.group(2)) >= 1 and int(m.group(3)) > 0
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="CPU affinity is Linux only")
+def test_pinned_replay_runs_every_scan_on_one_cpu(tmp_path):
+    from runtime.bench import pinned_replay
+    from tests.runtime.test_bad_input import recording
+
+    got = pinned_replay(recording(tmp_path / "rec.mcap", n=12))
+    assert got is not None
+    cpu, r = got
+    assert r["cpus"] == [cpu] and r["scans"] == 12 and r["rate"] > 0
+    assert r["source"] == "messages"  # this recording has no raw bytes
