@@ -48,28 +48,23 @@ def near_cells(ny: np.ndarray, nx: np.ndarray, cut2: int) -> tuple[np.ndarray, n
     int32 rows and columns of it, from the distance transform) lies within sqrt(``cut2``) cells: their rows
     and columns (int64), the nearest cell's row and column and the offset to it (ddy, ddx) (int32)."""
     h, w = ny.shape
+    near = np.empty((h, w), np.bool_)
     n = 0
     for y in range(h):
         for x in range(w):
             dy = ny[y, x] - np.int32(y)
             dx = nx[y, x] - np.int32(x)
-            if dx * dx + dy * dy <= cut2:
-                n += 1
-    iy = np.empty(n, np.int64)
-    ix = np.empty(n, np.int64)
-    oy = np.empty(n, np.int32)
-    ox = np.empty(n, np.int32)
-    ddy = np.empty(n, np.int32)
-    ddx = np.empty(n, np.int32)
+            near[y, x] = dx * dx + dy * dy <= cut2
+            n += near[y, x]
+    iy, ix = np.empty(n, np.int64), np.empty(n, np.int64)
+    oy, ox = np.empty(n, np.int32), np.empty(n, np.int32)
     k = 0
     for y in range(h):
         for x in range(w):
-            dy = ny[y, x] - np.int32(y)
-            dx = nx[y, x] - np.int32(x)
-            if dx * dx + dy * dy <= cut2:
-                iy[k], ix[k], oy[k], ox[k], ddy[k], ddx[k] = y, x, ny[y, x], nx[y, x], dy, dx
+            if near[y, x]:
+                iy[k], ix[k], oy[k], ox[k] = y, x, ny[y, x], nx[y, x]
                 k += 1
-    return iy, ix, oy, ox, ddy, ddx
+    return iy, ix, oy, ox, oy - iy.astype(np.int32), ox - ix.astype(np.int32)
 
 
 @_jit
