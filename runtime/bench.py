@@ -208,7 +208,12 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         peaks[f"replay from {source}"] = peak_rss_mib()
         del r  # its processor (grids, likelihood fields, reference cycles) is gone before the next run starts
         release_memory()
-    if (pinned := pinned_replay(recording, replay_config)) is not None:
+    try:
+        pinned = pinned_replay(recording, replay_config)
+    except PinnedReplayError as exc:  # the other figures stand: say so rather than lose them
+        pinned = None
+        lines.append(f"replay pinned to one core: {exc}")
+    if pinned is not None:
         cpu, p = pinned
         lines.append(f"replay from {p['source']}, pinned to one core (CPU {cpu}; a child process, {beside}): "
                      f"{p['scans']} scans in {p['wall']:.2f} s = {p['rate']:.0f} scans/s = {p['speedup']:.1f}x real time")
