@@ -269,21 +269,14 @@ class GlassMapper:
         pose = self._checked_pose(laser_pose)
         occ_pose = pose if occupancy_pose is None else self._checked_pose(occupancy_pose)
         n = scan.ranges.shape[0]
-        sig = np.asarray(sigma if register else 0.0, dtype=np.float64)
-        if sig.ndim == 0:
-            sig = np.full(n, float(sig))
-        elif sig.shape != (n,):
-            raise MappingInputError(f"sigma must be a scalar or one value per beam ({n}), got shape {sig.shape}")
-        if (sig < 0).any():
-            raise MappingInputError("sigma must be >= 0 m")
+        sig = self._checked_sigma(sigma, n) if register else None
         self.scans += 1
         if n == 0:
             self.skipped_scans += 1
             return BeamGlass(np.zeros(0), np.zeros(0))
         angles = scan.angles
         beams, use = self.classify(scan, angles=angles)
-        finite_sigma = np.isfinite(sig)
-        if not finite_sigma.all():
+        if sig is not None and not (finite_sigma := np.isfinite(sig)).all():
             beams.n_bad += int(np.count_nonzero(use & ~finite_sigma))
             use &= finite_sigma
         if update_occupancy:
@@ -296,6 +289,18 @@ class GlassMapper:
         if beams.n_ranged == 0:
             self.skipped_scans += 1
         return beams
+
+    @staticmethod
+    def _checked_sigma(sigma, n: int) -> np.ndarray:
+        """The registration sigma (n,) m per beam from a scalar or (n,) array; MappingInputError if not >= 0."""
+        sig = np.asarray(sigma, dtype=np.float64)
+        if sig.ndim == 0:
+            sig = np.full(n, float(sig))
+        elif sig.shape != (n,):
+            raise MappingInputError(f"sigma must be a scalar or one value per beam ({n}), got shape {sig.shape}")
+        if (sig < 0).any():
+            raise MappingInputError("sigma must be >= 0 m")
+        return sig
 
     @staticmethod
     def _checked_pose(laser_pose) -> np.ndarray:

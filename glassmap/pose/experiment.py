@@ -236,9 +236,11 @@ def _on_blueprint(mapper, bp) -> np.ndarray:
     return sub
 
 
+MAP_KINDS = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")  # method-name suffixes of the maps
+
+
 def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: str = "robust3",
-            suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")
-            ) -> list[dict]:
+            suffixes: tuple[str, ...] = MAP_KINDS) -> list[dict]:
     """For each map kind (method-name suffix) present in ``summary`` (:func:`glassmap.eval.experiment.summarise`
     rows): ``other``'s mean / worst / std of the error against ``base``'s, as relative gains (positive:
     ``other`` is lower), and whether ``other`` beats ``base`` in all three."""
@@ -254,8 +256,7 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
 
 
 def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...] = ("robust3", "robust3~anchor"),
-                  suffixes: tuple[str, ...] = ("", "@keys-online", "@every-online", "@keys", "@keys+lc")
-                  ) -> tuple[list[dict], list[dict]]:
+                  suffixes: tuple[str, ...] = MAP_KINDS) -> tuple[list[dict], list[dict]]:
     """Per world (the rows' ``world``) and per map kind: each of ``others``' margins over ``base``
     (:func:`margins`); and over the worlds, per (other, maps): the mean margin, the worst world's margin
     (lowest gain) and that world, and how many worlds it beats ``base`` in mean, worst and std together."""
