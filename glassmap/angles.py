@@ -9,8 +9,8 @@ point lies on no segment get NaN. Two line extractors, both returning per-beam s
   adjacent collinear pieces are merged; a second pass does the same on
   the points of the pieces that were too short, chained to near earlier points across gaps (so that glass
   returns interleaved with beams passing through the pane join their pane's line); each segment gets a total least squares fit
-  (moments summed in point order). The point-by-point loops are compiled (:mod:`glassmap.angles_jit`);
-  the transcendental functions run in numpy.
+  (moments summed in point order). The whole extraction is one compiled call per scan
+  (:func:`glassmap.angles_jit.split_merge_cosines`).
 - ``"hough"``: the scan points are rasterised and scikit-image's Hough transform finds lines; points within
   a tolerance of a line are split into SEGMENTS along it (scan order, gaps break a segment), so a point is
   only given a line it actually lies on, not the infinite extension of a neighbouring wall; each segment is
@@ -25,8 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from .angles_jit import (adopt_fits, breaks, chain_points, labels, merge_pieces, moments, piece_moments, point_cosines,
-                         relabel, segment_keep, split_pieces, tls_moments)
+from .angles_jit import moments, point_cosines, segment_quality, split_merge_cosines, tls_fit
 from .beam_trig import beam_trig
 
 AngleMethod = Literal["split-merge", "hough"]
@@ -89,23 +88,16 @@ def _moments(xy: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
     return moments(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), seg, n_seg)
 
 
-def _tls(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Total least squares lines from moments (k, 6): centroids (k, 2), unit normals (k, 2), rms (k,) m."""
-    cen, args, rms = tls_moments(m)
-    phi = np.arctan2(args[0], args[1])
-    phi *= 0.5  # direction of the line
-    normals = np.empty_like(cen)
-    np.sin(phi, out=normals[:, 0])
-    normals[:, 0] *= -1.0
-    np.cos(phi, out=normals[:, 1])
-    return cen, normals, rms
+def _checked(beam_angles: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.ascontiguousarray(beam_angles, dtype=np.float64)
+    r = np.ascontiguousarray(ranges, dtype=np.float64)
+    if a.shape != r.shape or a.ndim != 1:
+        raise ValueError(f"beam angles {a.shape} and ranges {r.shape} must be equal 1-D shapes")
+    return a, r
 
 
 def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float):
-    a = np.asarray(beam_angles, dtype=np.float64)
-    r = np.asarray(ranges, dtype=np.float64)
-    if a.shape != r.shape or a.ndim != 1:
-        raise ValueError(f"beam angles {a.shape} and ranges {r.shape} must be equal 1-D shapes")
+    a, r = _checked(beam_angles, ranges)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r > 0) & (r <= max_range)
     idx = valid.nonzero()[0]
@@ -117,14 +109,14 @@ def _valid_points(beam_angles: np.ndarray, ranges: np.ndarray, max_range: float)
 
 
 def _finish(n: int, idx: np.ndarray, u: np.ndarray, xy: np.ndarray, seg: np.ndarray, n_seg: int,
-            p: AngleParams, drop_last: bool = False, quality: tuple | None = None) -> IncidenceResult:
-    """Fit every segment (unless ``quality``, the result of :func:`_quality` for these segments, is given),
-    keep the good ones, and compute per-beam incidence angles."""
+            p: AngleParams, drop_last: bool = False) -> IncidenceResult:
+    """Fit every segment, keep the good ones, and compute per-beam incidence angles."""
     incidence = np.full(n, np.nan)
     segment = np.full(n, -1, dtype=np.int64)
     if n_seg == 0 or len(idx) == 0:
         return IncidenceResult(incidence, segment, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
-    mom, cen, normals, keep = _quality(xy, seg, n_seg, p) if quality is None else quality
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    mom, cen, normals, keep = segment_quality(x, y, seg, n_seg, p.min_points, p.min_length, p.max_rms)
     if drop_last:
         keep[-1] = False  # the bucket of points on no segment
     at, cosang, sid = point_cosines(np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1]), idx, seg, keep,
@@ -137,76 +129,17 @@ def _finish(n: int, idx: np.ndarray, u: np.ndarray, xy: np.ndarray, seg: np.ndar
 def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = AngleParams()) -> IncidenceResult:
     """Incidence angles from split-and-merge segments with total least squares fits."""
     p = params
-    a, r, idx, u, xy = _valid_points(beam_angles, ranges, p.max_range)
-    n = a.shape[0]
-    if len(idx) < p.min_points:
-        return _finish(n, idx, u, xy, np.zeros(len(idx), dtype=np.int64), 0, p)
-    dphi = abs(beam_trig(a).median_step)
-    x, y, rv = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), r[idx]
-    run_start = breaks(idx, rv, x, y, dphi, math.sin(p.break_lambda), 3.0 * p.break_sigma, p.max_index_gap)
-    seg, n_seg = labels(_merge(x, y, _split(x, y, rv, run_start, p), run_start, p))
-    quality = None
-    if p.link_lag > 0:
-        quality = _quality(xy, seg, n_seg, p)
-        seg, n_seg2, left = _second_pass(x, y, rv, idx, dphi, seg, n_seg, quality[3], p)
-        if left is not None:
-            quality = _requality(xy, seg, n_seg2, quality, left, p)
-        n_seg = n_seg2
-    return _finish(n, idx, u, xy, seg, n_seg, p, quality=quality)
-
-
-def _split(x: np.ndarray, y: np.ndarray, r: np.ndarray, starts_mask: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Iterative end-point fit on all runs at once (:func:`glassmap.angles_jit.split_pieces`). Returns the
-    final start mask."""
-    min_len = max(p.min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
-    return split_pieces(x, y, r, starts_mask, p.split_tol, p.split_tol_rel, min_len, p.max_split_iterations)
-
-
-def _merge(x: np.ndarray, y: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, p: AngleParams) -> np.ndarray:
-    """Merge neighbouring pieces of one run whose directions agree within merge_angle and whose joint fit
-    stays within max_rms (decided pairwise for all pieces at once)."""
-    starts, mom = piece_moments(x, y, is_start)
-    if len(starts) < 2:
-        return is_start
-    _, normals, rms = _tls(mom)  # the pieces, then adjacent pairs
-    return merge_pieces(is_start, starts, run_start, normals, rms, math.cos(p.merge_angle), p.max_rms)
-
-
-def _quality(xy: np.ndarray, seg: np.ndarray, n_seg: int, p: AngleParams):
-    """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
-    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
-    mom = moments(x, y, seg, n_seg)
-    cen, normals, rms = _tls(mom)
-    return mom, cen, normals, segment_keep(x, y, seg, mom, cen, normals, rms, p.min_points, p.min_length, p.max_rms)
-
-
-def _requality(xy: np.ndarray, seg: np.ndarray, n_seg: int, first: tuple, left: np.ndarray, p: AngleParams):
-    """:func:`_quality` after the second pass, fitting only the segments with points in ``left`` (the
-    points of the first pass's rejected segments); the first pass's good segments keep their fits, which
-    are the same numbers (the moments add each segment's points in the same order)."""
-    mom, cen, normals, keep = _quality(xy[left], seg.take(left), n_seg, p)
-    adopt_fits(mom, cen, normals, keep, *first)
-    return mom, cen, normals, keep
-
-
-def _second_pass(x: np.ndarray, y: np.ndarray, r: np.ndarray, idx: np.ndarray, dphi: float, seg: np.ndarray,
-                 n_seg: int, keep: np.ndarray, p: AngleParams) -> tuple[np.ndarray, int, np.ndarray | None]:
-    """Split-and-merge again on the points of the pieces that were too short.
-
-    Glass returns come in short fragments interleaved with beams that passed through the pane (which range
-    an object behind it, itself fragmented). Each leftover point links to the nearest earlier leftover
-    point (up to ``link_lag`` points back) that is as close as a breakpoint-free neighbour would be for
-    that beam gap (:func:`glassmap.angles_jit.chain_points`); the resulting chains are split and merged
-    like runs. ``keep``: the first pass's good segments. Returns the segment labels, their number and the
-    points whose segment may have changed (None: none did).
-    """
-    left, pts, brk = chain_points(x, y, r, idx, seg, keep, dphi / math.sin(p.break_lambda), 3.0 * p.break_sigma,
-                                  p.link_lag, p.min_points)
-    if left.size < p.min_points or pts.size == 0:
-        return seg, n_seg, None
-    px, py, pr = x.take(pts), y.take(pts), r.take(pts)
-    seg, n = relabel(seg, pts, _merge(px, py, _split(px, py, pr, brk, p), brk, p), n_seg)
-    return seg, n, left
+    a, r = _checked(beam_angles, ranges)
+    trig = beam_trig(a)  # np.cos / np.sin of the angles, kept from the last scan with the same angles
+    at, cosang, sid, normals, cen, counts = split_merge_cosines(
+        trig.cos, trig.sin, r, p.max_range, abs(trig.median_step), math.sin(p.break_lambda), 3.0 * p.break_sigma,
+        p.max_index_gap, p.split_tol, p.split_tol_rel, p.max_split_iterations, math.cos(p.merge_angle), p.link_lag,
+        p.min_points, p.min_length, p.max_rms)
+    incidence = np.full(a.shape[0], np.nan)
+    incidence[at] = np.arccos(np.clip(cosang, 0.0, 1.0, out=cosang), out=cosang)
+    segment = np.full(a.shape[0], -1, dtype=np.int64)
+    segment[at] = sid
+    return IncidenceResult(incidence, segment, normals, cen, counts)
 
 
 def hough(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = AngleParams()) -> IncidenceResult:
@@ -259,7 +192,7 @@ def hough(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams = Ang
     rows, cols = np.nonzero(seg_of >= 0)
     sids = seg_of[rows, cols]
     mom = _moments(xy[rows], sids, n_seg)
-    cen, normals, _ = _tls(mom)
+    cen, normals, _ = tls_fit(mom)
     d_ref = np.abs(np.einsum("ij,ij->i", xy[rows] - cen[sids], normals[sids]))
     on = d_ref <= p.hough_tol
     rows, sids, d_ref = rows[on], sids[on], d_ref[on]

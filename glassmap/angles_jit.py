@@ -1,11 +1,12 @@
 """Compiled inner loops of split-and-merge line extraction (:mod:`glassmap.angles`), numba ``njit``.
 
-Each kernel does, point by point in scan order, what the numpy version of :mod:`glassmap.angles` did in
-whole-array passes, with the same floating-point operations in the same order (no fast-math, so no fused
-multiply-adds), so its results are the same to the last bit. Transcendental functions (sin, cos, arctan2,
-arccos) stay in numpy: numpy's SIMD versions may round differently from the C library numba calls. hypot
-is the C library's in both. Points are in the laser frame (metres); ``is_start`` marks the first point of
-each piece. Compiled code is cached on disk (``cache=True``): only the first run on a machine compiles.
+:func:`split_merge_cosines` runs the whole extraction of one scan in one call; the other kernels are its
+steps. No fast-math (no fused multiply-adds), and no transcendental function but ``hypot`` and ``sqrt``:
+a line's normal comes from the half-angle formulas of its covariance (:func:`tls_fit`), so the results do
+not depend on which library's sin / cos / arctan2 the machine has (numpy's SIMD loops and the C library
+numba calls round differently in the last bit). The final arccos stays with the caller. Points are in the
+laser frame (metres); ``is_start`` marks the first point of each piece. Compiled code is cached on disk
+(``cache=True``): only the first run on a machine compiles.
 """
 
 from __future__ import annotations
@@ -308,3 +309,117 @@ def tls_moments(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         lam_min -= math.sqrt(_nonneg(disc))
         rms[s] = math.sqrt(_nonneg(lam_min))
     return cen, args, rms
+
+
+@_jit
+def _half_angle_normal(a: float, b: float) -> tuple[float, float]:
+    """(-sin phi, cos phi) for phi = arctan2(a, b) / 2 in [-pi/2, pi/2]: the unit normal of a line whose
+    direction is phi, from cos 2phi = b / R and sin 2phi = a / R (R = hypot(a, b)) without trigonometry.
+    a = b = 0 (no direction) gives phi = 0."""
+    rr = math.hypot(a, b)
+    if rr == 0.0:
+        return -0.0, 1.0
+    if b >= 0.0:
+        c = math.sqrt(0.5 * (1.0 + b / rr))
+        return -(a / rr) / (2.0 * c), c
+    sn = math.sqrt(0.5 * (1.0 - b / rr))
+    if a < 0.0 or (a == 0.0 and math.copysign(1.0, a) < 0.0):
+        sn = -sn
+    return -sn, (a / rr) / (2.0 * sn)
+
+
+@_jit
+def tls_fit(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total least squares lines from moments (k, 6): centroids (k, 2) m, unit normals (k, 2) and the rms
+    distance (k,) m of the points from their line."""
+    cen, args, rms = tls_moments(m)
+    normals = np.empty_like(cen)
+    for s in range(cen.shape[0]):
+        normals[s, 0], normals[s, 1] = _half_angle_normal(args[0, s], args[1, s])
+    return cen, normals, rms
+
+
+@_jit
+def _merge(x: np.ndarray, y: np.ndarray, is_start: np.ndarray, run_start: np.ndarray, cos_min: float,
+           max_rms: float) -> np.ndarray:
+    """Merge neighbouring pieces of one run whose directions agree (|cos| of their normals above
+    ``cos_min``) and whose joint fit stays within ``max_rms`` (m), decided pairwise for all pieces at once."""
+    starts, mom = piece_moments(x, y, is_start)
+    if starts.shape[0] < 2:
+        return is_start
+    _, normals, rms = tls_fit(mom)  # the pieces, then adjacent pairs
+    return merge_pieces(is_start, starts, run_start, normals, rms, cos_min, max_rms)
+
+
+@_jit
+def segment_quality(x: np.ndarray, y: np.ndarray, seg: np.ndarray, n_seg: int, min_points: int, min_length: float,
+             max_rms: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
+    mom = moments(x, y, seg, n_seg)
+    cen, normals, rms = tls_fit(mom)
+    return mom, cen, normals, segment_keep(x, y, seg, mom, cen, normals, rms, min_points, min_length, max_rms)
+
+
+@_jit
+def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray, max_range: float, dphi: float,
+                        sin_lambda: float, sigma3: float, max_gap: int, tol: float, tol_rel: float,
+                        max_levels: int, cos_merge: float, link_lag: int, min_points: int, min_length: float,
+                        max_rms: float):
+    """Split-and-merge of one scan (beam directions ``cos_a``, ``sin_a``, ``ranges`` m; points with a range
+    in (0, ``max_range``] are used; parameters as in :class:`glassmap.angles.AngleParams`, ``dphi`` the
+    beam spacing in rad).
+
+    Breakpoints cut runs; each run is split by the iterative end-point fit and adjacent collinear pieces
+    are merged; when ``link_lag`` > 0 the points of segments too poor to give angles are chained
+    (:func:`chain_points`) and split and merged again, the first pass's good segments keeping their fits.
+    Returns, for the points on good segments: their beam, |cos| of the angle between beam and normal, and
+    their segment's id among the good ones; and the good segments' normals (k, 2), centroids (k, 2) m and
+    point counts (k,)."""
+    m = 0
+    for i in range(ranges.shape[0]):
+        if ranges[i] > 0.0 and ranges[i] <= max_range:  # False for NaN; inf > max_range
+            m += 1
+    idx = np.empty(m, np.int64)
+    m = 0
+    for i in range(ranges.shape[0]):
+        if ranges[i] > 0.0 and ranges[i] <= max_range:
+            idx[m] = i
+            m += 1
+    if m < min_points:
+        return (np.empty(0, np.int64), np.empty(0), np.empty(0, np.int64), np.empty((0, 2)), np.empty((0, 2)),
+                np.empty(0, np.int64))
+    ux, uy, r = cos_a[idx], sin_a[idx], ranges[idx]
+    x = ux * r
+    y = uy * r
+    min_len = max(min_points, 3) - 1  # a piece with fewer points cannot yield a segment: never split it
+    run_start = breaks(idx, r, x, y, dphi, sin_lambda, sigma3, max_gap)
+    pieces = split_pieces(x, y, r, run_start, tol, tol_rel, min_len, max_levels)
+    seg, n_seg = labels(_merge(x, y, pieces, run_start, cos_merge, max_rms))
+    mom, cen, normals, keep = segment_quality(x, y, seg, n_seg, min_points, min_length, max_rms)
+    if link_lag > 0:
+        left, pts, brk = chain_points(x, y, r, idx, seg, keep, dphi / sin_lambda, sigma3, link_lag, min_points)
+        if left.shape[0] >= min_points and pts.shape[0] > 0:
+            px, py, pr = x[pts], y[pts], r[pts]
+            pieces = split_pieces(px, py, pr, brk, tol, tol_rel, min_len, max_levels)
+            seg, n_seg = relabel(seg, pts, _merge(px, py, pieces, brk, cos_merge, max_rms), n_seg)
+            # only the segments with points in ``left`` changed; the others keep their first fits
+            mom2, cen2, normals2, keep2 = segment_quality(x[left], y[left], seg[left], n_seg, min_points, min_length,
+                                                   max_rms)
+            adopt_fits(mom2, cen2, normals2, keep2, mom, cen, normals, keep)
+            mom, cen, normals, keep = mom2, cen2, normals2, keep2
+    at, cosang, sid = point_cosines(ux, uy, idx, seg, keep, normals)
+    k = 0
+    for s in range(n_seg):
+        if keep[s]:
+            k += 1
+    out_n = np.empty((k, 2))
+    out_c = np.empty((k, 2))
+    counts = np.empty(k, np.int64)
+    k = 0
+    for s in range(n_seg):
+        if keep[s]:
+            out_n[k] = normals[s]
+            out_c[k] = cen[s]
+            counts[k] = np.int64(mom[s, 0])
+            k += 1
+    return at, cosang, sid, out_n, out_c, counts
