@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from glassmap.grid import OccupancyGrid
 from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells
@@ -159,11 +158,10 @@ class LikelihoodField:
             # that close to a wall are computed; the rest keep the floor
             cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
             inner = field[pad:-pad, pad:-pad]
-            ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
             cut_c = int(np.ceil(cut / res))
             # the cells within cut_c cells of their nearest occupied cell (ny, nx), and the offset (ddy, ddx)
             # to it in cells
-            iy, ix, ny, nx, ddy, ddx = near_cells(ny, nx, cut_c * cut_c)
+            iy, ix, ny, nx, ddy, ddx = near_cells(occ, cut_c * cut_c)
             near = (iy, ix)
             points, pool = inputs.points, p.pool
             if points is None:  # no end-point layers: one point at the centre of each occupied cell (cell

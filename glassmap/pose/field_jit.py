@@ -1,7 +1,8 @@
 """Compiled passes of the likelihood field (:mod:`glassmap.pose.field`), numba ``njit``.
 
 A maximum is exact, so the result equals scipy's to the last bit whatever the order of the comparisons (the
-field holds no NaN); the other passes do the integer arithmetic and the floating-point operations of the
+field holds no NaN); the nearest occupied cells are those of scipy's exact distance transform, ties
+included (:func:`near_cells`); the other passes do the integer arithmetic and the floating-point operations of the
 numpy code they replaced, in the same order (no fast-math), so their results are the same to the last bit.
 Compiled code is cached on disk (``cache=True``).
 """
@@ -42,29 +43,52 @@ def forward_maximum(a: np.ndarray, f: int) -> np.ndarray:
 
 
 @_jit
-def near_cells(ny: np.ndarray, nx: np.ndarray, cut2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                   np.ndarray, np.ndarray, np.ndarray]:
-    """The cells (row-major order, as ``np.nonzero``) whose nearest occupied cell (``ny``, ``nx``: (H, W)
-    int32 rows and columns of it, from the distance transform) lies within sqrt(``cut2``) cells: their rows
-    and columns (int64), the nearest cell's row and column and the offset to it (ddy, ddx) (int32)."""
-    h, w = ny.shape
-    near = np.empty((h, w), np.bool_)
+def near_cells(occ: np.ndarray, cut2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                    np.ndarray]:
+    """The cells (row-major order, as ``np.nonzero``) of the (H, W) bool grid ``occ`` whose nearest occupied
+    cell lies within sqrt(``cut2``) cells: their rows and columns (int64), the nearest cell's row and column
+    and the offset to it (ddy, ddx) (int32). Of equally near occupied cells the one of the lowest column,
+    then the lowest row, is taken: the cell ``scipy.ndimage.distance_transform_edt(~occ,
+    return_indices=True)`` gives. Each occupied cell visits only the cells within the cut."""
+    h, w = occ.shape
+    r = 0
+    while (r + 1) * (r + 1) <= cut2:
+        r += 1
+    big = np.int32(cut2 + 1)
+    best = np.full((h, w), big, np.int32)  # squared distance to the nearest occupied cell so far
+    near = np.empty((h, w), np.int32)  # its flat index
+    flat = occ.ravel()
+    for f in range(h * w):
+        if not flat[f]:
+            continue
+        oy, ox = f // w, f % w
+        for dy in range(max(-r, -oy), min(r, h - 1 - oy) + 1):
+            y = oy + dy
+            for dx in range(max(-r, -ox), min(r, w - 1 - ox) + 1):
+                d2 = np.int32(dy * dy + dx * dx)
+                if d2 > cut2:
+                    continue
+                x = ox + dx
+                b = best[y, x]
+                if d2 < b:
+                    best[y, x] = d2
+                    near[y, x] = f
+                elif d2 == b:
+                    g = near[y, x]
+                    if ox < g % w or (ox == g % w and f < g):  # lower column, then lower row
+                        near[y, x] = f
+    bf, nf = best.ravel(), near.ravel()
     n = 0
-    for y in range(h):
-        for x in range(w):
-            dy = ny[y, x] - np.int32(y)
-            dx = nx[y, x] - np.int32(x)
-            near[y, x] = dx * dx + dy * dy <= cut2
-            n += near[y, x]
+    for f in range(h * w):
+        n += bf[f] < big
     iy, ix = np.empty(n, np.int64), np.empty(n, np.int64)
-    oy, ox = np.empty(n, np.int32), np.empty(n, np.int32)
+    ny, nx = np.empty(n, np.int32), np.empty(n, np.int32)
     k = 0
-    for y in range(h):
-        for x in range(w):
-            if near[y, x]:
-                iy[k], ix[k], oy[k], ox[k] = y, x, ny[y, x], nx[y, x]
-                k += 1
-    return iy, ix, oy, ox, oy - iy.astype(np.int32), ox - ix.astype(np.int32)
+    for f in range(h * w):
+        if bf[f] < big:
+            iy[k], ix[k], ny[k], nx[k] = f // w, f % w, nf[f] // w, nf[f] % w
+            k += 1
+    return iy, ix, ny, nx, ny - iy.astype(np.int32), nx - ix.astype(np.int32)
 
 
 @_jit
@@ -118,7 +142,7 @@ def warm_up() -> None:
     """Load (or, the first time on a machine, compile) the kernels now, with the argument types the field
     passes, rather than at the first rebuild."""
     forward_maximum(np.zeros((1, 1), np.float32), 1)
-    near_cells(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), 1)
+    near_cells(np.zeros((1, 1), np.bool_), 1)
     unique_cells(np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1)
     layer = np.zeros((1, 1), np.float32)
     neighbour_sums(layer, layer, layer, np.zeros(1, np.int64), np.zeros(1, np.int64), 1, 0.05)

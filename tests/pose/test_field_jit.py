@@ -1,8 +1,10 @@
 """The likelihood field's compiled passes equal the numpy / scipy code they replaced, bit for bit: the coarse
-maximum, the cells near a wall, the distinct nearest cells, the neighbourhood sums of the end-point layers."""
+maximum, the cells near a wall (and their nearest occupied cells: the exact distance transform's), the distinct nearest cells, the neighbourhood sums of the end-point layers."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import ndimage
 
 from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells
@@ -18,24 +20,38 @@ def test_forward_maximum_equals_scipy_maximum_filter(shape, f):
     assert forward_maximum(a, f).tobytes() == want.tobytes()
 
 
-def nearest_occupied(rng, shape):
-    occ = rng.random(shape) < 0.03
+@pytest.mark.parametrize("shape, cut_c, density", [((50, 70), 5, 0.03), ((9, 4), 2, 0.03), ((1, 1), 1, 0.03),
+                                                   ((30, 30), 0, 0.03), ((40, 60), 4, 0.3), ((25, 31), 3, 0.6),
+                                                   ((64, 64), 4, 0.005)])
+def test_near_cells_and_unique_cells_equal_the_distance_transform_selection(shape, cut_c, density):
+    """The cells within the cut of a wall and their nearest occupied cells are scipy's exact distance
+    transform's, ties (many at these densities) broken the same way."""
+    rng = np.random.default_rng(cut_c * 100 + shape[0])
+    occ = rng.random(shape) < density
     occ[0, 0] = True
-    return ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
-
-
-@pytest.mark.parametrize("shape, cut_c", [((50, 70), 5), ((9, 4), 2), ((1, 1), 1), ((30, 30), 0)])
-def test_near_cells_and_unique_cells_equal_the_numpy_selection(shape, cut_c):
-    ny, nx = nearest_occupied(np.random.default_rng(cut_c), shape)
+    ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
     ddy = ny - np.arange(shape[0], dtype=ny.dtype)[:, None]
     ddx = nx - np.arange(shape[1], dtype=nx.dtype)[None, :]
     near = np.nonzero(ddx * ddx + ddy * ddy <= cut_c * cut_c)
-    got = near_cells(ny, nx, cut_c * cut_c)
+    got = near_cells(occ, cut_c * cut_c)
     for g, want in zip(got, (*near, ny[near], nx[near], ddy[near], ddx[near])):
         assert g.dtype == want.dtype and g.tobytes() == want.tobytes()
     u, inv = np.unique(ny[near].astype(np.int64) * shape[1] + nx[near], return_inverse=True)
     gu, ginv = unique_cells(got[2], got[3], *shape)
     assert gu.tobytes() == u.tobytes() and np.array_equal(ginv, inv)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 24), st.integers(1, 24), st.floats(0.0, 0.7), st.integers(0, 6), st.integers(0, 2 ** 32 - 1))
+def test_near_cells_take_the_distance_transforms_nearest_cell_whatever_the_grid(h, w, density, cut_c, seed):
+    occ = np.random.default_rng(seed).random((h, w)) < density
+    if not occ.any():
+        occ[h // 2, w // 2] = True
+    ny, nx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
+    iy, ix, gy, gx, _, _ = near_cells(occ, cut_c * cut_c)
+    assert np.array_equal(gy, ny[iy, ix]) and np.array_equal(gx, nx[iy, ix])
+    d2 = (ny - np.arange(h)[:, None]) ** 2 + (nx - np.arange(w)[None, :]) ** 2
+    assert np.array_equal(np.flatnonzero(d2.ravel() <= cut_c * cut_c), iy * w + ix)
 
 
 @pytest.mark.parametrize("r", [1, 2])
