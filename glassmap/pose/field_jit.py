@@ -22,23 +22,24 @@ def forward_maximum(a: np.ndarray, f: int) -> np.ndarray:
     it: ``scipy.ndimage.maximum_filter(a, size=f, origin=-(f // 2), mode="nearest")`` for a 2-D array
     without NaN."""
     h, w = a.shape
-    rows = np.empty((h, w), a.dtype)
+    rows = a.copy()  # the maximum over x .. x + f - 1 of each row
     for y in range(h):
-        for x in range(w):
-            m = a[y, x]
-            for d in range(1, f):
-                v = a[y, min(x + d, w - 1)]
-                if v > m:
-                    m = v
-            rows[y, x] = m
-    out = np.empty((h, w), a.dtype)
+        ry, ay = rows[y], a[y]
+        for d in range(1, f):
+            for x in range(max(w - d, 0)):  # contiguous: vectorised
+                if ay[x + d] > ry[x]:
+                    ry[x] = ay[x + d]
+            for x in range(max(w - d, 0), w):  # past the last column: the last column
+                if ay[w - 1] > ry[x]:
+                    ry[x] = ay[w - 1]
+    out = rows.copy()
     for y in range(h):
-        out[y, :] = rows[y, :]
+        oy = out[y]
         for d in range(1, f):
             r = rows[min(y + d, h - 1)]
             for x in range(w):
-                if r[x] > out[y, x]:
-                    out[y, x] = r[x]
+                if r[x] > oy[x]:
+                    oy[x] = r[x]
     return out
 
 
