@@ -3,8 +3,9 @@
 1. Live: the runtime against the emulated devices (separate process) at real time, 40 Hz, recording to
    MCAP: latency from the scan's last bytes arriving (transport read) to the maps updated, per scan.
 2. Replay of that recording as fast as possible, from the decoded messages and from the raw bytes through
-   the drivers' decoders: scans/s, times real time, per-stage time per scan; and the raw replay again in a
-   process pinned to one core (Linux, :func:`pinned_replay`): the target's "on one core", literally.
+   the drivers' decoders: scans/s, times real time, per-stage time per scan; and the raw replay again in
+   processes pinned to one core (Linux, :func:`pinned_replay`; ``pinned_runs`` of them, their median): the
+   target's "on one core", literally.
 3. Peak resident memory: of the live runtime, of each replay (each run's own peak: the kernel's high-water
    mark is reset between the runs, :func:`reset_peak_rss`), of this whole process (the three runs one after
    the other) and of the largest child process (emulated devices, map worker).
@@ -127,6 +128,25 @@ def pinned_replay(recording: str | Path, config=None, root: str | Path | None = 
                             + out.stderr.decode(errors="replace")[-1500:])
 
 
+def _pinned_line(recording: str | Path, config, runs: int, beside: str) -> str:
+    """``runs`` replays pinned to one core, as one line: each run's rate and their median (the machine's
+    speed drifts from minute to minute: one short run is a sample, not the figure)."""
+    rates, p, cpu = [], None, None
+    for _ in range(runs):
+        try:
+            got = pinned_replay(recording, config)
+        except PinnedReplayError as exc:  # the other figures stand: say so rather than lose them
+            return f"replay pinned to one core: {exc}"
+        if got is None:
+            return "replay pinned to one core: not possible here (no CPU affinity on this system)"
+        cpu, p = got
+        rates.append(p["rate"])
+    med = float(np.median(rates))
+    return (f"replay from {p['source']}, pinned to one core (CPU {cpu}; a child process per run, {beside}): "
+            f"{p['scans']} scans, {runs} run{'s' if runs != 1 else ''}: {', '.join(f'{r:.0f}' for r in rates)} "
+            f"scans/s; median {med:.0f} scans/s = {med * p['speedup'] / p['rate']:.1f}x real time")
+
+
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
 
 STAGES = (("pose", "pose (prediction + matching + fusion)"), ("likelihood_field", "likelihood field rebuild"),
@@ -145,21 +165,23 @@ def _stage_lines(stages: dict, prefix: str) -> list[str]:
 
 
 def run_bench(world: str = "office", duration: float = 20.0, recording: str | None = None,
-              out_dir: str = "out/bench", load: int = 0, stages: bool = False, config=None) -> str:
+              out_dir: str = "out/bench", load: int = 0, stages: bool = False, config=None,
+              pinned_runs: int = 3) -> str:
     """config: a :class:`runtime.config.RuntimeConfig` for the live run and, with ``recording``, its replays
-    (default: the defaults; a recording made here is replayed with its recorded settings)."""
+    (default: the defaults; a recording made here is replayed with its recorded settings). pinned_runs:
+    replays pinned to one core (their median is the figure; 0: none)."""
     from runtime.load import BusyProcesses
 
     with BusyProcesses(load) as busy:
         lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it",
-                     stages, config)
+                     stages, config, pinned_runs)
         if busy.running != load:
             lines.append(f"warning: only {busy.running} of the {load} busy processes were still running at the end")
     return "\n".join(lines)
 
 
 def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool,
-         config=None) -> list[str]:
+         config=None, pinned_runs: int = 3) -> list[str]:
     from runtime.replay import replay_file
     from runtime.tuning import release_memory
 
@@ -208,15 +230,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         peaks[f"replay from {source}"] = peak_rss_mib()
         del r  # its processor (grids, likelihood fields, reference cycles) is gone before the next run starts
         release_memory()
-    try:
-        pinned = pinned_replay(recording, replay_config)
-    except PinnedReplayError as exc:  # the other figures stand: say so rather than lose them
-        pinned = None
-        lines.append(f"replay pinned to one core: {exc}")
-    if pinned is not None:
-        cpu, p = pinned
-        lines.append(f"replay from {p['source']}, pinned to one core (CPU {cpu}; a child process, {beside}): "
-                     f"{p['scans']} scans in {p['wall']:.2f} s = {p['rate']:.0f} scans/s = {p['speedup']:.1f}x real time")
+    if pinned_runs > 0:
+        lines.append(_pinned_line(recording, replay_config, pinned_runs, beside))
     if stages:
         from runtime.stageprof import stage_profile
 

@@ -173,6 +173,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "that anyone can reproduce")
     b.add_argument("--stages", action="store_true", help="also replay the recording once more with every stage of "
                    "the processing timed (CPU time of the thread: holds on a busy machine) and print the table")
+    b.add_argument("--pinned-runs", type=_non_negative_int, default=3, metavar="N",
+                   help="replays of the raw bytes pinned to one core (Linux), each in its own process; the median "
+                   "is the one-core figure (0: none)")
     add_out(b, "out/bench")
     add_config_flags(b)
     b.set_defaults(func=cmd_bench)
@@ -368,7 +371,7 @@ def cmd_bench(args) -> int:
 
         base = recorded_config(args.recording)
     print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
-                    load=args.load, stages=args.stages, config=_config(args, base)))
+                    load=args.load, stages=args.stages, config=_config(args, base), pinned_runs=args.pinned_runs))
     return 0
 
 
