@@ -89,6 +89,7 @@ def _moments(xy: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
 
 
 def _checked(beam_angles: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The angles (rad) and ranges (m) as contiguous float64 arrays of one equal 1-D shape (ValueError if not)."""
     a = np.ascontiguousarray(beam_angles, dtype=np.float64)
     r = np.ascontiguousarray(ranges, dtype=np.float64)
     if a.shape != r.shape or a.ndim != 1:

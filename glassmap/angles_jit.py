@@ -353,7 +353,7 @@ def _merge(x: np.ndarray, y: np.ndarray, is_start: np.ndarray, run_start: np.nda
 
 @_jit
 def segment_quality(x: np.ndarray, y: np.ndarray, seg: np.ndarray, n_seg: int, min_points: int, min_length: float,
-             max_rms: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    max_rms: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per segment: moments, centroid, normal and whether it is good enough to give angles."""
     mom = moments(x, y, seg, n_seg)
     cen, normals, rms = tls_fit(mom)
@@ -403,8 +403,8 @@ def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray
             pieces = split_pieces(px, py, pr, brk, tol, tol_rel, min_len, max_levels)
             seg, n_seg = relabel(seg, pts, _merge(px, py, pieces, brk, cos_merge, max_rms), n_seg)
             # only the segments with points in ``left`` changed; the others keep their first fits
-            mom2, cen2, normals2, keep2 = segment_quality(x[left], y[left], seg[left], n_seg, min_points, min_length,
-                                                   max_rms)
+            mom2, cen2, normals2, keep2 = segment_quality(x[left], y[left], seg[left], n_seg, min_points,
+                                                          min_length, max_rms)
             adopt_fits(mom2, cen2, normals2, keep2, mom, cen, normals, keep)
             mom, cen, normals, keep = mom2, cen2, normals2, keep2
     at, cosang, sid = point_cosines(ux, uy, idx, seg, keep, normals)

@@ -1,8 +1,8 @@
 """Compiled passes of the likelihood field (:mod:`glassmap.pose.field`), numba ``njit``.
 
 A maximum is exact, so the result equals scipy's to the last bit whatever the order of the comparisons (the
-field holds no NaN); the nearest occupied cells are those of scipy's exact distance transform, ties
-included (:func:`near_cells`); the other passes do the integer arithmetic and the floating-point operations of the
+field holds no NaN); the nearest occupied cells are those of scipy's exact distance transform, ties included
+(:func:`near_cells`); the other passes do the integer arithmetic and the floating-point operations of the
 numpy code they replaced, in the same order (no fast-math), so their results are the same to the last bit.
 Compiled code is cached on disk (``cache=True``).
 """

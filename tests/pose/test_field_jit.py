@@ -1,5 +1,6 @@
 """The likelihood field's compiled passes equal the numpy / scipy code they replaced, bit for bit: the coarse
-maximum, the cells near a wall (and their nearest occupied cells: the exact distance transform's), the distinct nearest cells, the neighbourhood sums of the end-point layers."""
+maximum, the cells near a wall and their nearest occupied cells (the exact distance transform's), the distinct
+nearest cells, the neighbourhood sums of the end-point layers."""
 
 import numpy as np
 import pytest
@@ -44,6 +45,7 @@ def test_near_cells_and_unique_cells_equal_the_distance_transform_selection(shap
 @settings(max_examples=200, deadline=None)
 @given(st.integers(1, 24), st.integers(1, 24), st.floats(0.0, 0.7), st.integers(0, 6), st.integers(0, 2 ** 32 - 1))
 def test_near_cells_take_the_distance_transforms_nearest_cell_whatever_the_grid(h, w, density, cut_c, seed):
+    """Any grid, any cut: the same cells near a wall and the same nearest occupied cell for each."""
     occ = np.random.default_rng(seed).random((h, w)) < density
     if not occ.any():
         occ[h // 2, w // 2] = True
