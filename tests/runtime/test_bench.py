@@ -23,7 +23,6 @@ def test_the_peak_of_a_later_run_does_not_include_an_earlier_larger_one():
 
 
 def test_machine_reference_names_the_cpu_and_times_the_workload():
-
     from runtime.bench import machine_reference
 
     line = machine_reference()
