@@ -252,9 +252,9 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     lines.append(f"peak memory: this process (all its runs) {own:.0f} MiB; largest child process (emulated "
                  f"devices, map worker, the replays' map export; a child started late counts this process's "
                  f"resident set at its fork) {kids:.0f} MiB")
-    lines.append("targets (issue 19): replay from raw >= 400 scans/s (10x real time) on one core (pinned); live p99 <= 20 ms "
-                 "idle, <= 25 ms with one busy process (--load 1), no scan dropped at 40 Hz; runtime peak memory "
-                 "<= 300 MiB")
+    lines.append("targets (issue 19): replay from raw >= 400 scans/s (10x real time) on one core (pinned); live p99 "
+                 "<= 20 ms idle, <= 25 ms with one busy process (--load 1), no scan dropped at 40 Hz; runtime peak "
+                 "memory <= 300 MiB")
     try:
         load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
         lines.append(f"machine load average (1, 5, 15 min): {load} on {os.cpu_count()} cores (other work slows "

@@ -52,11 +52,14 @@ def profile(tree: Path, recording: Path, runs: int) -> list[dict]:
 
 def pinned(tree: Path, recording: Path) -> float:
     """Scans per second (wall clock) of a raw replay of ``recording`` by checkout ``tree``, pinned to one CPU."""
-    from runtime.bench import pinned_replay
+    from runtime.bench import PinnedReplayError, pinned_replay
 
-    got = pinned_replay(recording, root=tree)
+    try:
+        got = pinned_replay(recording, root=tree)
+    except PinnedReplayError as exc:
+        raise SystemExit(f"{tree}: {exc}") from None
     if got is None:
-        raise SystemExit(f"{tree}: the pinned replay failed (or CPU affinity cannot be set here)")
+        raise SystemExit("--pinned: CPU affinity cannot be set on this system (Linux only)")
     return got[1]["rate"]
 
 
