@@ -31,25 +31,39 @@ def free_and_hit_update(lo: np.ndarray, protect: np.ndarray, seen: np.ndarray, w
     scan, not the size of the map."""
     size = lo.shape[0]
     touched = np.empty(counts.sum() + hit_cells.shape[0], np.int64)  # cells changed (at most one per sample)
+    longest = 0
+    for b in range(counts.shape[0]):
+        longest = max(longest, counts[b])
+    cells = np.empty(longest, np.int64)  # one beam's sample cells, then its runs of one cell
     n = 0
     guard = protect.shape[0] > 0
+    # Branch-free passes per beam: mispredicted branches (is this sample in the cell of the one before? was
+    # this cell lowered already?) cost more than the arithmetic.
     for b in range(counts.shape[0]):
         cx, cy = dx[b], dy[b]
-        last = -1
-        for i in range(counts[b]):
+        m = counts[b]
+        for i in range(m):  # the sample cells (vectorised by LLVM)
             t = np.float32(i) * step
-            ix = np.int64(np.floor(fx + cx * t))
-            iy = np.int64(np.floor(fy + cy * t))
-            cell = iy * w + ix
-            if cell == last:  # most samples fall in the cell of the one before: done already
-                continue
+            cells[i] = np.int64(np.floor(fy + cy * t)) * w + np.int64(np.floor(fx + cx * t))
+        k = 0
+        last = -1
+        for i in range(m):  # most samples fall in the cell of the one before: keep one per run
+            cell = cells[i]
+            cells[k] = cell
+            k += cell != last
             last = cell
-            if cell < 0 or cell >= size or seen[cell] == 1 or (guard and protect[cell]):
-                continue
-            seen[cell] = 1  # 1: lowered this scan, 2: raised this scan
-            touched[n] = cell
-            n += 1
-            lo[cell] = lo[cell] + l_free
+        for j in range(k):  # lower each cell once: off-grid, protected or lowered cells leave lo as it is
+            cell = cells[j]
+            on_grid = (cell >= 0) & (cell < size)
+            c = cell if on_grid else 0
+            fresh = on_grid & (seen[c] == 0)
+            if guard:
+                fresh = fresh & (not protect[c])
+            touched[n] = c
+            n += fresh
+            seen[c] = seen[c] | np.uint8(fresh)  # 1: lowered this scan, 2: raised this scan
+            v = lo[c]
+            lo[c] = v + l_free if fresh else v
     for j in range(hit_cells.shape[0]):
         cell = hit_cells[j]
         if cell < 0 or cell >= size or seen[cell] == 2:
