@@ -103,7 +103,9 @@ def register(subparsers) -> None:
     g = sub.add_parser("margins", help="robust3's margins over direct per world and over worlds, from experiment CSVs",
                        description="Read the CSVs of `glassmap pose experiment` (one or more worlds) and print, per "
                        "world and kind of map, robust3's (and robust3~<sigma>'s) gain over direct in mean, worst "
-                       "and std of the error over trials, then over the worlds the mean gain and the worst world's.")
+                       "and std of the error over trials, trial by trial (trials where robust3's error is lower, and the mean "
+                       "paired difference direct - robust3 in points of error with its standard error), then over the "
+                       "worlds the mean gain and the worst world's.")
     g.add_argument("csv", nargs="+", help="experiment CSV files")
     g.set_defaults(func=_margins)
 
@@ -295,15 +297,18 @@ def _margins(args: argparse.Namespace) -> int:
             rows.extend(csv.DictReader(f))
     others = ["robust3"] + sorted({r["method"] for r in rows if r["method"].startswith("robust3~")})
     per_world, overall = world_margins(rows, others=tuple(others))
-    print(f"{'world':28s} {'method':15s} {'maps':8s} {'mean':>7s} {'worst':>7s} {'std':>7s}  beats")
+    print(f"{'world':28s} {'method':15s} {'maps':8s} {'mean':>7s} {'worst':>7s} {'std':>7s}  beats  "
+          f"{'trials won':>10s}  {'paired diff +- se (points)':>26s}")
     for m in per_world:
         print(f"{os.path.splitext(os.path.basename(m['world']))[0]:28s} {m['other']:15s} {m['maps']:8s} "
               f"{100 * m['mean_gain']:+6.1f}% {100 * m['worst_gain']:+6.1f}% {100 * m['std_gain']:+6.1f}%  "
-              f"{'yes' if m['beats'] else 'no'}")
+              f"{'yes' if m['beats'] else 'no ':5s}  {m['wins']:4d} of {m['n']:<3d}  "
+              f"{100 * m['diff']:+19.2f} +- {100 * m['diff_se']:.2f}")
     print("over the worlds: mean gain (worst world's gain, that world)")
     for o in overall:
         parts = [f"{k} {100 * o[f'{k}_gain']:+.1f} % ({100 * o[f'{k}_gain_worst']:+.1f} %, "
                  f"{os.path.splitext(os.path.basename(o[f'{k}_gain_worst_world']))[0]})" for k in ("mean", "worst", "std")]
         print(f"{o['other']} vs direct, {o['maps']} maps, {o['worlds']} worlds: " + "; ".join(parts)
-              + f"; beats direct in all three on {o['beats']} of {o['worlds']}")
+              + f"; beats direct in all three on {o['beats']} of {o['worlds']}; lower error in {o['wins']} of "
+              f"{o['trials']} trials")
     return 0

@@ -255,23 +255,38 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
     return out
 
 
+def paired(rows: list[dict], base: str, other: str) -> dict:
+    """Trial by trial (rows with the same ``seed``): in how many of the ``n`` trials ``other``'s error is
+    lower than ``base``'s (``wins``), and the mean of base - other (``diff``: positive = ``other`` lower,
+    error fraction) with its standard error (``diff_se``; NaN for fewer than two trials)."""
+    err = {(r["method"], str(r["seed"])): float(r["error"]) for r in rows}
+    seeds = [s for (m, s) in err if m == base and (other, s) in err]
+    d = np.array([err[(base, s)] - err[(other, s)] for s in seeds])
+    se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
+    return dict(n=int(d.size), wins=int((d > 0).sum()), diff=float(d.mean()) if d.size else float("nan"), diff_se=se)
+
+
 def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...] = ("robust3", "robust3~anchor"),
                   suffixes: tuple[str, ...] = MAP_KINDS) -> tuple[list[dict], list[dict]]:
     """Per world (the rows' ``world``) and per map kind: each of ``others``' margins over ``base``
-    (:func:`margins`); and over the worlds, per (other, maps): the mean margin, the worst world's margin
-    (lowest gain) and that world, and how many worlds it beats ``base`` in mean, worst and std together."""
+    (:func:`margins`) and trial-by-trial figures (:func:`paired`: ``n``, ``wins``, ``diff``, ``diff_se``);
+    and over the worlds, per (other, maps): the mean margin, the worst world's margin (lowest gain) and that
+    world, how many worlds it beats ``base`` in mean, worst and std together, and its trials won of all."""
     from glassmap.eval.experiment import summarise
 
     per_world = []
     for world in dict.fromkeys(r["world"] for r in rows):
-        summary = summarise([r for r in rows if r["world"] == world])
+        in_world = [r for r in rows if r["world"] == world]
+        summary = summarise(in_world)
         for other in others:
             for m in margins(summary, base, other, suffixes if "~" not in other else ("",)):
-                per_world.append(dict(world=world, **m))
+                suf = "" if m["maps"] == "online" else "@" + m["maps"]
+                per_world.append(dict(world=world, **m, **paired(in_world, base + suf, other + suf)))
     overall = []
     for key in dict.fromkeys((m["other"], m["maps"]) for m in per_world):
         ms = [m for m in per_world if (m["other"], m["maps"]) == key]
-        row = dict(other=key[0], maps=key[1], worlds=len(ms), beats=sum(m["beats"] for m in ms))
+        row = dict(other=key[0], maps=key[1], worlds=len(ms), beats=sum(m["beats"] for m in ms),
+                   wins=sum(m["wins"] for m in ms), trials=sum(m["n"] for m in ms))
         for k in ("mean", "worst", "std"):
             g = np.array([m[f"{k}_gain"] for m in ms])
             row[f"{k}_gain"] = float(np.nanmean(g))

@@ -71,3 +71,18 @@ def test_world_margins_per_world_and_the_worst_world_over_them():
     (o,) = overall
     assert o["mean_gain"] == pytest.approx(-0.05) and o["mean_gain_worst"] == pytest.approx(-0.2)
     assert o["mean_gain_worst_world"] == "b" and o["worlds"] == 2 and o["beats"] == 1
+    assert (per_world[0]["wins"], per_world[0]["n"]) == (2, 2) and per_world[1]["wins"] == 0
+    assert per_world[0]["diff"] == pytest.approx(0.015) and per_world[0]["diff_se"] == pytest.approx(0.005)
+    assert per_world[1]["diff"] == pytest.approx(-0.02) and per_world[1]["diff_se"] == pytest.approx(0.0)
+    assert (o["wins"], o["trials"]) == (2, 4)
+
+
+def test_paired_figures_match_trials_by_seed():
+    from glassmap.pose.experiment import paired
+
+    rows = [dict(seed=s, method=m, error=e) for s, m, e in
+            ((0, "direct", 0.10), (1, "direct", 0.30), (2, "direct", 0.20), (1, "robust3", 0.25), (0, "robust3", 0.12))]
+    p = paired(rows, "direct", "robust3")  # seed 2 has no robust3 trial: left out
+    assert (p["n"], p["wins"]) == (2, 1) and p["diff"] == pytest.approx(0.015)
+    assert p["diff_se"] == pytest.approx(np.std([-0.02, 0.05], ddof=1) / np.sqrt(2))
+    assert paired(rows[:1], "direct", "robust3")["n"] == 0
