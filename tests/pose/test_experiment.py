@@ -86,3 +86,22 @@ def test_paired_figures_match_trials_by_seed():
     assert (p["n"], p["wins"]) == (2, 1) and p["diff"] == pytest.approx(0.015)
     assert p["diff_se"] == pytest.approx(np.std([-0.02, 0.05], ddof=1) / np.sqrt(2))
     assert paired(rows[:1], "direct", "robust3")["n"] == 0
+
+
+def test_margins_command_prints_the_trials_won_and_the_paired_difference(tmp_path, capsys):
+    import csv
+
+    from runtime.cli import main
+
+    path = tmp_path / "online_w.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, ["seed", "world", "method", "maps", "error", "error_occupied", "glass_recall",
+                               "false_glass_rate"])
+        w.writeheader()
+        for s, (d, r) in enumerate([(0.10, 0.09), (0.20, 0.18), (0.10, 0.11)]):
+            for m, e in (("direct", d), ("robust3", r)):
+                w.writerow(dict(seed=s, world="w.toml", method=m, maps="online", error=e, error_occupied=e,
+                                glass_recall=0.9, false_glass_rate=0.0))
+    assert main(["pose", "margins", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "2 of 3" in out and "+0.67 +- 0.88" in out and "lower error in 2 of 3 trials" in out
