@@ -103,9 +103,9 @@ def register(subparsers) -> None:
     g = sub.add_parser("margins", help="robust3's margins over direct per world and over worlds, from experiment CSVs",
                        description="Read the CSVs of `glassmap pose experiment` (one or more worlds) and print, per "
                        "world and kind of map, robust3's (and robust3~<sigma>'s) gain over direct in mean, worst "
-                       "and std of the error over trials, trial by trial (trials where robust3's error is lower, and the mean "
-                       "paired difference direct - robust3 in points of error with its standard error), then over the "
-                       "worlds the mean gain and the worst world's.")
+                       "and std of the error over trials, trial by trial (trials where robust3's error is lower, "
+                       "and the mean paired difference direct - robust3 in points of error with its standard "
+                       "error), then over the worlds the mean gain and the worst world's.")
     g.add_argument("csv", nargs="+", help="experiment CSV files")
     g.set_defaults(func=_margins)
 
