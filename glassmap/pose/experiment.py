@@ -243,14 +243,16 @@ def margins(summary: dict[str, dict[str, float]], base: str = "direct", other: s
             suffixes: tuple[str, ...] = MAP_KINDS) -> list[dict]:
     """For each map kind (method-name suffix) present in ``summary`` (:func:`glassmap.eval.experiment.summarise`
     rows): ``other``'s mean / worst / std of the error against ``base``'s, as relative gains (positive:
-    ``other`` is lower), and whether ``other`` beats ``base`` in all three."""
+    ``other`` is lower), and whether ``other`` beats ``base`` in all three; ``maps`` names the kind, ``suffix``
+    is its method-name suffix."""
     out = []
     for suf in suffixes:
         a, b = summary.get(base + suf), summary.get(other + suf)
         if a is None or b is None:
             continue
         gain = {k: (a[k] - b[k]) / a[k] if a[k] > 0 else float("nan") for k in ("mean", "worst", "std")}
-        out.append(dict(maps=suf.lstrip("@") or "online", base=base, other=other, **{f"{k}_gain": v for k, v in gain.items()},
+        out.append(dict(maps=suf.lstrip("@") or "online", suffix=suf, base=base, other=other,
+                        **{f"{k}_gain": v for k, v in gain.items()},
                         beats=all(b[k] < a[k] for k in ("mean", "worst", "std"))))
     return out
 
@@ -280,8 +282,7 @@ def world_margins(rows: list[dict], base: str = "direct", others: tuple[str, ...
         summary = summarise(in_world)
         for other in others:
             for m in margins(summary, base, other, suffixes if "~" not in other else ("",)):
-                suf = "" if m["maps"] == "online" else "@" + m["maps"]
-                per_world.append(dict(world=world, **m, **paired(in_world, base + suf, other + suf)))
+                per_world.append(dict(world=world, **m, **paired(in_world, base + m["suffix"], other + m["suffix"])))
     overall = []
     for key in dict.fromkeys((m["other"], m["maps"]) for m in per_world):
         ms = [m for m in per_world if (m["other"], m["maps"]) == key]
