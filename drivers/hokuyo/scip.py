@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.hokuyo.scip_jit import decode_multi, echo_intensities, echo_metres, metres
+from drivers.hokuyo.scip_jit import decode_multi, echo_intensities, echo_metres, metres, scan_frames
 from drivers.hokuyo.errors import (
     BadValue,
     ChecksumError,
@@ -334,6 +334,7 @@ def further_echoes(multi: np.ndarray, multi_intensities: np.ndarray | None, dmin
 def warm_up() -> None:
     """Load (or, the first time on a machine, compile: seconds, longer than a client's scan watchdog) the
     compiled decoders now, with the argument types a stream gives them, rather than at the first scan."""
+    scan_frames(np.frombuffer(b"\n\n", np.uint8), True, LINE_PAYLOAD)
     for command in ("NE", "ND"):
         _, _, multi, mint = decode_scan_data(command, np.frombuffer(encode_values(np.arange(4), 3), np.uint8).copy())
         distances_to_metres(multi[:, 0].copy(), 1, 2)
@@ -444,18 +445,11 @@ class ScipParser:
         buf = self._partial
         if len(buf) < 16:
             return
-        whole = np.frombuffer(bytes(buf), np.uint8)
-        lf = np.flatnonzero(whole == 0x0A)
-        blank = np.flatnonzero(lf[1:] - lf[:-1] == 1)  # lf[blank + 1] ends a message
+        frames, data, offsets = scan_frames(np.frombuffer(bytes(buf), np.uint8), self.verify_checksums,
+                                            LINE_PAYLOAD)
         done = 0  # bytes consumed
-        li = 0  # index into lf of the first line end of the current message
-        for bi in blank.tolist():
-            e = int(lf[bi + 1])
-            ends = lf[li:bi + 1]  # line ends of this message: echo, status, timestamp, data...
-            if ends.size < 4 or ends[0] <= done:
-                break
-            i1, i2 = int(ends[0]), int(ends[1])
-            echo_raw = bytes(buf[done:i1])
+        for k, (start, i1, i2, e) in enumerate(frames.tolist()):
+            echo_raw = bytes(buf[start:i1])
             m = _KNOWN_ECHO_RE.fullmatch(echo_raw)
             status = bytes(buf[i1 + 1:i2])
             if m is None or not (m.group("stream") or m.group("single")) or not _is_status(status) \
@@ -463,31 +457,12 @@ class ScipParser:
                 break
             if m.group("string") and _KNOWN_ECHO_RE.fullmatch(echo_raw, m.start("string")):
                 break  # an echo glued to a partial one: the state machine resynchronises
-            p = whole[i2 + 1:e]  # payload lines with their LFs: timestamp, full data lines, last line
-            pl = ends[2:] - (i2 + 1)  # LF of each payload line, in p
-            if pl.size < 2:
-                break
-            starts = np.empty_like(pl)
-            starts[0] = 0
-            starts[1:] = pl[:-1] + 1
-            lens = pl - starts  # without the LF
-            if lens[0] != 5 or lens[-1] < 2 or (lens[1:-1] != LINE_PAYLOAD + 1).any():
-                break
-            if self.verify_checksums:
-                ck = p[pl - 1]
-                sums = np.add.reduceat(p, starts, dtype=np.uint8)  # mod 256 is enough for a mod-64 checksum
-                if ((((sums - ck - 0x0A) & 0x3F) + 0x30) != ck).any():
-                    break
-            last = int(starts[-1])
-            data = np.concatenate([p[6:last].reshape(-1, LINE_PAYLOAD + 2)[:, :LINE_PAYLOAD].ravel(),
-                                   p[last:p.size - 2]])
-            ts = bytes(p[:4])
             try:
-                self._out.append(self._scan_from(_make_echo(echo_raw, m), status[:2].decode("ascii"), ts, data))
+                self._out.append(self._scan_from(_make_echo(echo_raw, m), status[:2].decode("ascii"),
+                                                 bytes(buf[i2 + 1:i2 + 5]), data[offsets[k]:offsets[k + 1]]))
             except ScipProtocolError as exc:
                 self._out.append(exc)
             done = e + 1
-            li = bi + 2
         if done:
             del buf[:done]
 

@@ -111,3 +111,57 @@ def echo_intensities(multi: np.ndarray, inten: np.ndarray) -> np.ndarray:
         for j in range(1, k):
             out[i, j - 1] = np.float64(inten[i, j]) if multi[i, j] >= 0 else np.nan
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def scan_frames(buf: np.ndarray, verify: bool, line_payload: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The whole scan-shaped messages at the head of ``buf`` (uint8): an echo line, a status line, a 4-character
+    timestamp line, data lines of ``line_payload`` characters and a last one of at least one, each with its
+    checksum character, then a blank line. Returns (frames (m, 4) int64: each message's first byte and the LFs
+    ending its echo line, its status line and the message; data (uint8): the messages' data characters
+    joined, checksums removed; offsets (m + 1,) of each message's data in it). Stops at the first message
+    framed otherwise or, with ``verify``, with a bad checksum on a timestamp or data line (the echo and
+    status lines are the caller's to check)."""
+    lf = np.flatnonzero(buf == 0x0A)
+    frames = np.empty((lf.size // 4, 4), np.int64)
+    data = np.empty(buf.size, np.uint8)
+    offsets = np.zeros(lf.size // 4 + 1, np.int64)
+    m = 0
+    done = 0  # first byte of the next message
+    li = 0  # index into lf of the next message's first line end
+    for bi in range(lf.size - 1):
+        if lf[bi + 1] - lf[bi] != 1:
+            continue
+        if bi + 1 - li < 4 or lf[li] <= done:  # fewer than 4 lines before the blank line, or an empty echo line
+            break
+        i2 = lf[li + 1]
+        ok = True
+        start = i2 + 1  # first byte of the line
+        n_out = offsets[m]
+        for k in range(li + 2, bi + 1):
+            end = lf[k]  # the line's LF
+            n = end - start  # characters, checksum included
+            first, last = k == li + 2, k == bi
+            if (first and n != 5) or (last and not first and n < 2) or (not first and not last and n != line_payload + 1):
+                ok = False
+                break
+            if verify:
+                s = 0
+                for j in range(start, end - 1):
+                    s += buf[j]
+                if (s & 0x3F) + 0x30 != buf[end - 1]:
+                    ok = False
+                    break
+            if not first:
+                for j in range(start, end - 1):
+                    data[n_out] = buf[j]
+                    n_out += 1
+            start = end + 1
+        if not ok:
+            break
+        frames[m, 0], frames[m, 1], frames[m, 2], frames[m, 3] = done, lf[li], i2, lf[bi + 1]
+        m += 1
+        offsets[m] = n_out
+        done = lf[bi + 1] + 1
+        li = bi + 2
+    return frames[:m], data[:offsets[m]], offsets[:m + 1]
