@@ -73,8 +73,11 @@ class OnlineTrialConfig:
             raise ValueError(f"glass_every must be >= 1 (every k-th scan), got {self.glass_every}")
 
 
-def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list[dict]:
-    """One trial; returns one row per method (classification error and friends + pose metrics)."""
+def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None, maps_out: dict | None = None) -> list[dict]:
+    """One trial; returns one row per method (classification error and friends + pose metrics). ``maps_out``:
+    a dict that receives the blueprint's labels (``"truth"``: 1 wall, 2 glass), the cells scored
+    (``"evaluated"``) and each map's labels on the blueprint's cells under its method name (as
+    :func:`glassmap.eval.metrics.score_map` takes them)."""
     from glassmap.eval.metrics import score_map
     from glassmap.eval.trial import METHODS, evaluation_mask
     from glassmap.mapping import GlassMapper, MapperConfig
@@ -193,8 +196,13 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None) -> list
                     layer=f"glass_{m}", **METHODS[m]), grid=grid)
                 maps.append((f"{m}@{kind}", kind, gm))
     rows = []
+    if maps_out is not None:
+        maps_out.update(truth=bp.labels, evaluated=mask)
     for name, kind, mp in maps:
-        s = score_map(_on_blueprint(mp, bp), bp.labels, mask)
+        labels = _on_blueprint(mp, bp)
+        if maps_out is not None:
+            maps_out[name] = labels
+        s = score_map(labels, bp.labels, mask)
         rows.append(dict(common, method=name, maps=kind, error=s.error, error_occupied=s.error_occupied,
                          glass_recall=s.glass_recall, false_glass_rate=s.false_glass_rate,
                          unregistered=s.unregistered, n_cells=s.n_cells, **pose_cols, **lc_cols,

@@ -4,6 +4,7 @@ graph scores the maps rebuilt from the key scans with and without the loop closu
 import numpy as np
 import pytest
 
+from glassmap.eval.metrics import score_map
 from glassmap.pose.experiment import OnlineTrialConfig, margins, run_online_trial
 
 
@@ -25,8 +26,12 @@ def test_margins_are_relative_gains_and_beating_needs_all_three():
 def test_trial_with_loop_closure_scores_maps_rebuilt_at_front_end_and_optimised_poses():
     cfg = OnlineTrialConfig(world="glass-corridor", route=None, methods=("direct", "robust3"), loop_closure=True,
                             sigmas=("map", "anchor"), compare_glass_scans=True)
-    rows = run_online_trial(cfg, 0)
+    maps: dict = {}
+    rows = run_online_trial(cfg, 0, maps_out=maps)
     names = [r["method"] for r in rows]
+    assert set(maps) == set(names) | {"truth", "evaluated"}
+    for r in rows:  # the labels handed out are the ones scored
+        assert score_map(maps[r["method"]], maps["truth"], maps["evaluated"]).error == r["error"]
     assert names == ["direct", "robust3", "robust3~anchor", "direct@every-online", "robust3@every-online",
                      "direct@keys", "robust3@keys", "direct@keys+lc",
                      "robust3@keys+lc"]  # direct does not read the sigma: no direct~anchor
