@@ -16,6 +16,7 @@ import argparse
 
 import numpy as np
 
+from glassmap.cli_args import add_seeds
 from glassmap.pose.experiment import OnlineTrialConfig, run_online_trial
 
 WALL, GLASS = 1, 2
@@ -46,18 +47,13 @@ def report(maps: dict) -> list[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("world", help="a world file (.toml) or a built-in world")
-    ap.add_argument("--seeds", default="0-1", help="run seeds, a-b or comma-separated (default 0-1)")
-    ap.add_argument("--route", default="loop", help="route (default: loop)")
+    add_seeds(ap, "0-1")
+    ap.add_argument("--route", default="loop", help="route (default: %(default)s)")
     a = ap.parse_args()
-    if "-" in a.seeds:
-        lo, hi = (int(x) for x in a.seeds.split("-"))
-        seeds = list(range(lo, hi + 1))
-    else:
-        seeds = [int(x) for x in a.seeds.split(",")]
     cfg = OnlineTrialConfig(world=a.world, route=a.route, methods=("direct", "robust3"))
-    for seed in seeds:
+    for seed in a.seeds:
         maps: dict = {}
         rows = {r["method"]: r for r in run_online_trial(cfg, seed, maps_out=maps)}
         d, r = rows["direct"], rows["robust3"]

@@ -142,7 +142,8 @@ def scan_frames(buf: np.ndarray, verify: bool, line_payload: int) -> tuple[np.nd
             end = lf[k]  # the line's LF
             n = end - start  # characters, checksum included
             first, last = k == li + 2, k == bi
-            if (first and n != 5) or (last and not first and n < 2) or (not first and not last and n != line_payload + 1):
+            bad = (n != 5) if first else ((n < 2) if last else (n != line_payload + 1))
+            if bad:
                 ok = False
                 break
             if verify:
