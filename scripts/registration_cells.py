@@ -4,8 +4,8 @@ lies around them (docs/loop-closure.md, "Where robust 3x3's online margin comes 
 For each seed: one online trial (`glassmap pose experiment`'s, poses and registration sigma from the
 estimator), then per blueprint class (glass, wall) the scored cells each method labels right, the cells only
 direct labels right ("lost" by robust 3x3) and only robust 3x3 ("gained"), and for those, the share with a
-wall cell and with a glass cell among their 8 neighbours in the blueprint, beside that share over all
-scored cells of the class.
+cell of the other class (wall for glass cells, glass for wall cells) among their 8 neighbours in the
+blueprint, beside that share over all scored cells of the class.
 
     python scripts/registration_cells.py WORLD.toml [--seeds 0-1] [--route loop]
 """
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from glassmap.cli_args import add_seeds
 from glassmap.pose.experiment import OnlineTrialConfig, run_online_trial
@@ -22,27 +23,19 @@ from glassmap.pose.experiment import OnlineTrialConfig, run_online_trial
 WALL, GLASS = 1, 2
 
 
-def neighbours(mask: np.ndarray) -> np.ndarray:
-    """How many of each cell's 8 neighbours are set in ``mask`` (H, W) bool."""
-    p = np.pad(mask, 1).astype(np.int64)
-    h, w = mask.shape
-    return sum(p[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
-
-
 def report(maps: dict) -> list[str]:
     truth, scored = maps["truth"], maps["evaluated"]
     direct, robust = maps["direct"], maps["robust3"]
-    near_wall, near_glass = neighbours(truth == WALL) > 0, neighbours(truth == GLASS) > 0
     lines = []
-    for cls, name, right in ((GLASS, "glass", 1), (WALL, "wall", 0)):
+    for cls, other, name, other_name, right in ((GLASS, WALL, "glass", "a wall", 1), (WALL, GLASS, "wall", "glass", 0)):
+        near = binary_dilation(truth == other, structure=np.ones((3, 3), bool))  # an 8-neighbour of the other class
         cells = scored & (truth == cls)
         d_ok, r_ok = cells & (direct == right), cells & (robust == right)
-        lines.append(f"  {name}: {cells.sum()} cells scored (next to a wall {near_wall[cells].mean():.0%}, next to "
-                     f"glass {near_glass[cells].mean():.0%}); right: direct {d_ok.sum()}, robust3 {r_ok.sum()}")
+        lines.append(f"  {name}: {cells.sum()} cells scored (next to {other_name} {near[cells].mean():.0%}); right: "
+                     f"direct {d_ok.sum()}, robust3 {r_ok.sum()}")
         for label, sel in (("lost by robust3", d_ok & ~r_ok), ("gained by robust3", r_ok & ~d_ok)):
             if sel.any():
-                lines.append(f"    {label}: {sel.sum()} (next to a wall {near_wall[sel].mean():.0%}, next to glass "
-                             f"{near_glass[sel].mean():.0%})")
+                lines.append(f"    {label}: {sel.sum()} (next to {other_name} {near[sel].mean():.0%})")
     return lines
 
 
