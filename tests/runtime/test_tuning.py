@@ -99,3 +99,48 @@ print(frozen_kept, ref() is None, gc.get_freeze_count())
 def test_thaw_lets_the_collector_free_what_a_run_froze():
     out = subprocess.run([sys.executable, "-c", _THAW], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True", "True", "0"]
+
+
+_COMPILER_PAGES = """
+import json
+import numba
+from runtime.tuning import COMPILER_LIBRARIES, release_compiler_pages
+
+def private_clean_kib():  # the compiler library's pages that only this process maps
+    total, name = 0, ""
+    for line in open("/proc/self/smaps"):
+        head = line.split()
+        if "-" in head[0] and len(head) >= 5 and ":" not in head[0]:
+            name = head[5] if len(head) > 5 else ""
+        elif head[0] == "Private_Clean:" and any(lib in name for lib in COMPILER_LIBRARIES):
+            total += int(head[1])
+    return total
+
+@numba.njit
+def before(x):
+    return x * 2 + 1
+
+first = before(20)
+loaded = private_clean_kib()
+advised = release_compiler_pages()
+left = private_clean_kib()
+
+@numba.njit
+def after(x):  # compiled after the release: LLVM's pages come back as it needs them
+    return x - 3
+
+print(json.dumps({"first": first, "again": before(5), "new": after(10), "advised": advised,
+                  "loaded": loaded, "left": left}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/maps and MADV_PAGEOUT are Linux's")
+def test_the_jit_compilers_pages_go_back_and_kernels_still_compile_and_run(tmp_path):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = json.loads(subprocess.run([sys.executable, "-c", _COMPILER_PAGES], capture_output=True, text=True,
+                                    check=True, env=env).stdout)
+    assert (out["first"], out["again"], out["new"]) == (41, 11, 7)
+    assert out["advised"] > 10 * 2 ** 20  # the LLVM library's mappings were found (~160 MB of them)
+    # the pages only this process maps leave it (tens of MiB in a fresh interpreter; pages another process
+    # maps too, e.g. a test runner that has run kernels, are shared and stay: the kernel skips those)
+    assert out["left"] <= 4 * 1024
