@@ -3,7 +3,9 @@
 The estimator's map (occupancy, sub-cell end points) is built from a simulated run's key scans (every 5 cm)
 at their true laser poses; each key scan is matched, with the truth as prior, against the map of the key
 scans before it (or, with --full-map, against the map of the whole run), then integrated. Prints the mean
-match error in the robot frame (along the track, positive = ahead; sideways, positive = left; yaw); where
+match error in the robot frame (along the track, positive = ahead; sideways, positive = left; yaw); what
+each scan shows that might predict it (range jumps, the match's reported sigma and information along the
+track) and how each correlates with the error; where
 the score itself peaks along the track (other axes at the truth) against the vertex of the parabola through
 the scores one cell either side (the matcher's sub-lattice estimate); where the score pushes the pose along
 the track at the true poses (the 10 cm bins of end points with the largest summed gradient: which features
@@ -84,7 +86,7 @@ def main() -> int:
             keys.append(i)
             last = run.scan_true_poses[i, :2]
     passes = [(False, True), (True, False)] if args.full_map else [(True, True)]
-    errs, grad, prof, since, peaks, para = [], {}, [], 0, [], []
+    errs, grad, prof, since, peaks, para, pred = [], {}, [], 0, [], [], []
     exact_err: dict[tuple, list] = {}  # per 10 cm bin: [sum of the field's along-track vector (m), count]
     for do_match, do_map in passes:
         if do_match and not do_map:
@@ -103,6 +105,7 @@ def main() -> int:
                 if res is not None:
                     d = res.pose - truth
                     errs.append((run.scan_stamps[i], c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
+                    pred.append(_predictors(measured, res, np.array([c, s, 0.0]), cfg.likelihood.sigma_hit))
                 a = lp[2] + scan.angles[idx]
                 u = np.stack([np.cos(a), np.sin(a)], axis=1)
                 pm = lp[:2] + ranges[idx][:, None] * u
@@ -152,6 +155,7 @@ def main() -> int:
         print(f"t {lo:4.1f}-{hi:4.1f} s: {m.sum():4d} matches, mean along {1000 * e[m, 1].mean():+6.2f} mm "
               f"(se {1000 * e[m, 1].std() / np.sqrt(max(m.sum(), 1)):.2f}), sideways {1000 * e[m, 2].mean():+6.2f} mm, "
               f"yaw {1000 * e[m, 3].mean():+6.3f} mrad", flush=True)
+    _print_predictors(e[:, 1], np.array(pred))
     print(f"the score's own maximum along the track (other axes at the truth): mean {1000 * np.mean(peaks):+.2f} mm "
           f"(se {1000 * np.std(peaks) / np.sqrt(len(peaks)):.2f}); vertex of the parabola through +-1 cell "
           f"{1000 * np.nanmean(para):+.2f} mm")
@@ -172,6 +176,28 @@ def main() -> int:
     if args.dump:
         _dump(est, np.array([float(v) for v in args.dump.split(":")]), rebuild)
     return 0
+
+
+def _predictors(ranges: np.ndarray, res, along: np.ndarray, sigma_hit: float) -> tuple[float, float, float]:
+    """What a single scan and its match show that could predict the match's bias: the number of range jumps
+    (the nearer end point of neighbouring beams more than max(15 cm, 5 %) apart: occluding edges, convex
+    corners), the match's reported standard deviation along the track (m) and the end points' information
+    along the track (in end points squarely facing it)."""
+    r = np.where(np.isfinite(ranges), ranges, np.inf)
+    with np.errstate(invalid="ignore"):
+        jump = np.abs(np.diff(r)) > np.maximum(0.15, 0.05 * np.minimum(r[:-1], r[1:]))
+    info = np.where(np.isfinite(res.information), res.information, 0.0)
+    return (float(np.sum(jump & np.isfinite(np.minimum(r[:-1], r[1:])))), float(np.sqrt(along @ res.covariance @ along)),
+            float(along @ info @ along) * sigma_hit ** 2)
+
+
+def _print_predictors(err: np.ndarray, pred: np.ndarray) -> None:
+    names = ("range jumps per scan", "reported sigma along the track (mm)", "information along the track (points)")
+    scale = (1.0, 1000.0, 1.0)
+    ok = np.abs(err) < 0.05
+    print("per match, what the scan shows (median; correlation with the match's error along the track): " + "; ".join(
+        f"{n} {k * np.median(pred[ok, j]):.1f} ({np.corrcoef(err[ok], pred[ok, j])[0, 1]:+.2f})"
+        for j, (n, k) in enumerate(zip(names, scale))) + f"; error rms {1000 * err[ok].std():.2f} mm")
 
 
 def _dump(est: PoseEstimator, xy: np.ndarray, rebuild) -> None:
