@@ -107,8 +107,11 @@ async def serve(world_name: str, speed: float, seed: int, seen_path: str | None 
         return compose(pose, np.asarray(robot.params.laser_offset, np.float64))
 
     from glassmap.sim.cast_jit import warm_up
+    from runtime.tuning import release_compiler_pages
 
     warm_up()  # the ray casting's compiled kernel, before the host connects (its laser watchdog is 0.5 s)
+    # LLVM's pages out before the runtime loads its kernels: pages both processes map stay in both (runtime.tuning)
+    release_compiler_pages()
     source = sim_scan_source(world, laser_pose, seed + 1, on_scan=seen.add)
     hokuyo = HokuyoEmulator(source, time_scale=speed)
     truth.clock = hokuyo.clock_ms
