@@ -21,9 +21,9 @@ garbage collector's way.
   the interpreter lock anyway).
 - numba loads the compiled kernels (from its on-disk cache) through LLVM, a 170 MB shared library
   (llvmlite's), at start-up; after that the kernels run as plain machine code and LLVM's pages are not
-  touched again (unless a kernel meets new argument types and is compiled). Kernels that map file pages in
-  large folios keep ~70-100 MiB of them resident for nothing. :func:`release_compiler_pages` hands them back
-  (``madvise(MADV_PAGEOUT)``); a page that is needed again is read back in on its first use.
+  touched again (unless a kernel meets new argument types and is compiled). Linux kernels that map file
+  pages in large folios keep ~70-100 MiB of them resident for nothing. :func:`release_compiler_pages` hands
+  them back (``madvise(MADV_PAGEOUT)``); a page that is needed again is read back in on its first use.
 """
 
 from __future__ import annotations

@@ -45,12 +45,14 @@ GLASS_LAYER = "glass"
 # chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
 _CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
 MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under its best placement
-MAP_VAR_YAW_LAYER = "pose_var_yaw"  # that placement's map rotation variance (rad^2), inf: no placement yet
-# ... the pivot (map frame, m) of that rotation, and the shift variance (m^2 per axis)
-MAP_SRC_LAYERS = ("pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift")
-# the systematic error (m, map frame x and y) of the cell's best placement: matches biased the same way in a
-# chain of placements add up (see EstimatorConfig.map_bias_per_match)
-MAP_SYS_LAYERS = ("pose_sys_x", "pose_sys_y")
+MAP_PLACEMENT_LAYER = "pose_placement"  # int32: that placement's row in PoseEstimator's placement table
+# the columns of a placement's error model (a row per key scan placed, shared by every cell it placed best):
+# the map rotation variance (rad^2; inf: no placement yet), the pivot (map frame, m) of that rotation, the
+# shift variance (m^2 per axis), and the systematic error (m, map frame x and y): matches biased the same way
+# in a chain of placements add up (see EstimatorConfig.map_bias_per_match)
+PLACEMENT_FIELDS = ("pose_var_yaw", "pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift", "pose_sys_x",
+                    "pose_sys_y")
+_NO_PLACEMENT = (np.inf, 0.0, 0.0, 0.0, 0.0, 0.0)  # row 0 of the table: the cells no key scan placed
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 
 
@@ -215,14 +217,15 @@ class PoseEstimator:
     Covariance. The EKF tracks the pose relative to the map built so far (odometry noise and match
     covariances; with ``correlated_matches``, ``ekf.actual_cov`` also counts the error consecutive matches
     share, see :mod:`glassmap.pose.filter`); that alone would be overconfident, because the map itself is only as
-    good as the poses that built it. So every end-point cell stores the error model of its best placement
-    (the one that placed the cell itself most precisely): a shift (``pose_var_shift``, m^2 per axis) and a
-    rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a match reads the model
-    of the cells under its end points (``map_cov``, ``map_region``: :meth:`matched_map_covariance`), and
-    the reported covariance is ``ekf.actual_cov + map_cov``. New cells inherit the matched region's
-    rotation about its pivot (:meth:`store_map_variance`), so along a corridor the sideways uncertainty
-    grows linearly with the distance from where the map's direction error came from; coming back to
-    well-known ground makes it shrink again.
+    good as the poses that built it. So every end-point cell refers to the error model of its best placement
+    (the key scan that placed the cell itself most precisely; a row per key scan in a table of
+    :data:`PLACEMENT_FIELDS`, the cell's row in the ``pose_placement`` layer): a shift (``pose_var_shift``,
+    m^2 per axis) and a rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a
+    match reads the model of the cells under its end points (``map_cov``, ``map_region``:
+    :meth:`matched_map_covariance`), and the reported covariance is ``ekf.actual_cov + map_cov``. New cells
+    inherit the matched region's rotation about its pivot (:meth:`store_map_variance`), so along a corridor
+    the sideways uncertainty grows linearly with the distance from where the map's direction error came
+    from; coming back to well-known ground makes it shrink again.
     """
 
     def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
@@ -267,13 +270,17 @@ class PoseEstimator:
         # mapper's ``protect_mask``); called after the grid has grown to contain the scan
         self.protect_mask_fn = None
         self.last_key_scan: KeyScan | None = None  # the last key scan as placed (for a pose graph)
+        # the placements' error models (PLACEMENT_FIELDS), a row per key scan; the grid holds each cell's row
+        self._placements = np.array([_NO_PLACEMENT], dtype=np.float32)
+        self._n_placements = 1
         if config.map_uncertainty:
-            for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER):
-                if name not in self.occupancy.grid.layer_names:
-                    self.occupancy.grid.add_layer(name, np.inf, np.float32)
-            for name in MAP_SRC_LAYERS + MAP_SYS_LAYERS:
-                if name not in self.occupancy.grid.layer_names:
-                    self.occupancy.grid.add_layer(name, 0.0, np.float32)
+            g = self.occupancy.grid
+            if MAP_VAR_LAYER not in g.layer_names:
+                g.add_layer(MAP_VAR_LAYER, np.inf, np.float32)
+            if MAP_PLACEMENT_LAYER not in g.layer_names:
+                g.add_layer(MAP_PLACEMENT_LAYER, 0, np.int32)
+            else:  # rows of another estimator's table: this one knows none of them
+                g[MAP_PLACEMENT_LAYER][...] = 0
 
     # ------------------------------------------------------------------ inputs
     def predict(self, odom: Odometry) -> None:
@@ -585,8 +592,8 @@ class PoseEstimator:
         pts at pose), and that region's error model (None when no matched cell has one).
 
         A cell's error is a rigid displacement of the map around it: a shift (variance s per axis) plus a
-        rotation d_th (variance v) about a pivot A (layers ``pose_var_shift``, ``pose_var_yaw``,
-        ``pose_var_pivot_x/_y``; see :meth:`store_map_variance`). A robot at X matched against it inherits
+        rotation d_th (variance v) about a pivot A (``pose_var_shift``, ``pose_var_yaw``, ``pose_var_pivot_x/_y``
+        of the cell's placement; see :meth:`store_map_variance`). A robot at X matched against it inherits
         both: position error shift + d_th * u with u = perp(X - A), yaw error d_th, so per cell
         diag(s, s, 0) + v [u; 1][u; 1]^T: anisotropic (a yaw error of the map far behind the robot moves it
         sideways, not along the corridor) and correlated with yaw. The matched cells share their error (they
@@ -599,19 +606,18 @@ class PoseEstimator:
         cells = g.world_to_cell(xy)
         ok = g.in_bounds(cells)
         cy, cx = cells[ok, 1], cells[ok, 0]
-        vyaw = g[MAP_VAR_YAW_LAYER][cy, cx].astype(np.float64)
-        fin = np.isfinite(vyaw)
+        model = self._placements[g[MAP_PLACEMENT_LAYER][cy, cx]].astype(np.float64)  # PLACEMENT_FIELDS per point
+        fin = np.isfinite(model[:, 0])
         if not fin.any():
             return self.map_cov, self.map_region
-        cy, cx, vyaw = cy[fin], cx[fin], vyaw[fin]
-        pivot = np.stack([g[MAP_SRC_LAYERS[0]][cy, cx], g[MAP_SRC_LAYERS[1]][cy, cx]], axis=1).astype(np.float64)
-        shift = g[MAP_SRC_LAYERS[2]][cy, cx].astype(np.float64)
+        model = model[fin]
+        # contiguous, as the products and sums below were written for
+        vyaw, pivot, shift, sys = (np.ascontiguousarray(model[:, k]) for k in (0, slice(1, 3), 3, slice(4, 6)))
         sv, ss = np.sqrt(np.maximum(vyaw, 0.0)), np.sqrt(np.maximum(shift, 0.0))
         if sv.sum() > 0:
             centre = (sv @ pivot) / sv.sum()  # one rotation of sd mean(sv) about here moves every cell as all did
         else:
             centre = pivot.mean(axis=0)
-        sys = np.stack([g[MAP_SYS_LAYERS[0]][cy, cx], g[MAP_SYS_LAYERS[1]][cy, cx]], axis=1).astype(np.float64)
         region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre, sys.mean(axis=0),
                            sys.T @ sys / len(sys))
         return self.region_covariance(region, pose), region
@@ -666,10 +672,24 @@ class PoseEstimator:
             bias = np.linalg.pinv(h) @ (h @ bias) if h.shape[0] else np.zeros(3)
         sys = reg.sys + bias[:2]
         # the cell's own variance where smaller than before; the cells it fell in take this placement's model
-        vals = np.array([vyaw, pivot[0], pivot[1], shift, sys[0], sys[1]], dtype=np.float32)
-        layers = (g[name] for name in (MAP_VAR_LAYER, MAP_VAR_YAW_LAYER) + MAP_SRC_LAYERS + MAP_SYS_LAYERS)
-        keep_best_placement(*layers, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution),
-                            shift + float(sys @ sys), vyaw, float(pivot[0]), float(pivot[1]), vals)
+        index = self.add_placement((vyaw, pivot[0], pivot[1], shift, sys[0], sys[1]))
+        keep_best_placement(g[MAP_VAR_LAYER], g[MAP_PLACEMENT_LAYER], end, float(g.origin[0]), float(g.origin[1]),
+                            float(g.resolution), shift + float(sys @ sys), vyaw, float(pivot[0]), float(pivot[1]),
+                            index)
+
+    def add_placement(self, model: tuple[float, ...]) -> int:
+        """Append a placement's error model (PLACEMENT_FIELDS, stored as float32) to the table; its row."""
+        if self._n_placements == len(self._placements):
+            self._placements = np.concatenate([self._placements, np.empty_like(self._placements)])
+        self._placements[self._n_placements] = model
+        self._n_placements += 1
+        return self._n_placements - 1
+
+    def placement_field(self, name: str) -> np.ndarray:
+        """(H, W) float32 map of one of :data:`PLACEMENT_FIELDS` of every cell's best placement (inf / 0 where
+        no key scan placed the cell), e.g. ``"pose_var_yaw"``: for inspection and tests."""
+        g = self.occupancy.grid
+        return self._placements[:self._n_placements, PLACEMENT_FIELDS.index(name)][g[MAP_PLACEMENT_LAYER]]
 
     # ------------------------------------------------------------------ outputs
     def scan_pose(self) -> np.ndarray:

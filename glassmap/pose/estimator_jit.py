@@ -49,13 +49,11 @@ def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray,
 
 
 @_jit
-def keep_best_placement(var: np.ndarray, yaw: np.ndarray, pivot_x: np.ndarray, pivot_y: np.ndarray,
-                        shift: np.ndarray, sys_x: np.ndarray, sys_y: np.ndarray, end: np.ndarray, ox: float,
-                        oy: float, res: float, base: float, vyaw: float, px: float, py: float,
-                        vals: np.ndarray) -> None:
-    """Each end point's cell variance float32(base + vyaw |p - (px, py)|^2) into ``var`` where smaller than
-    the cell held before this scan (np.minimum, NaN propagates), and ``vals`` (6,) float32 into the other
-    six layers of the cells whose variance fell (all (h, w) float32)."""
+def keep_best_placement(var: np.ndarray, placement: np.ndarray, end: np.ndarray, ox: float, oy: float,
+                        res: float, base: float, vyaw: float, px: float, py: float, index: int) -> None:
+    """Each end point's cell variance float32(base + vyaw |p - (px, py)|^2) into ``var`` ((h, w) float32)
+    where smaller than the cell held before this scan (np.minimum, NaN propagates), and ``index`` into
+    ``placement`` ((h, w) int32) at the cells whose variance fell."""
     h, w = var.shape
     n = end.shape[0]
     cy = np.empty(n, np.int64)
@@ -79,19 +77,14 @@ def keep_best_placement(var: np.ndarray, yaw: np.ndarray, pivot_x: np.ndarray, p
     for k in range(m):
         iy, ix = cy[k], cx[k]
         if var[iy, ix] < before[k]:
-            yaw[iy, ix] = vals[0]
-            pivot_x[iy, ix] = vals[1]
-            pivot_y[iy, ix] = vals[2]
-            shift[iy, ix] = vals[3]
-            sys_x[iy, ix] = vals[4]
-            sys_y[iy, ix] = vals[5]
+            placement[iy, ix] = index
 
 
 def warm_up() -> None:
     """Load (or, the first time on a machine, compile) these kernels now, with the argument types the
     estimator passes, rather than at the first scan."""
-    lay = [np.zeros((2, 2), np.float32) for _ in range(7)]
+    lay = [np.zeros((2, 2), np.float32) for _ in range(3)]
     end = np.zeros((1, 2))
     registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
     add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
-    keep_best_placement(*lay, end, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, np.zeros(6, np.float32))
+    keep_best_placement(lay[0], np.zeros((2, 2), np.int32), end, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1)

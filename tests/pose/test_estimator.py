@@ -226,9 +226,8 @@ def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
     pose = np.array([4.0, 0.0, 0.0])
     cells = g.world_to_cell(pts + pose[:2])
     sp2, sth2 = 1e-4, 1e-4
-    for name, val in (("pose_var_xy", sp2 + 25 * sth2), ("pose_var_yaw", sth2), ("pose_var_pivot_x", 0.0),
-                      ("pose_var_pivot_y", 0.0), ("pose_var_shift", sp2)):
-        g[name][cells[:, 1], cells[:, 0]] = val
+    g["pose_var_xy"][cells[:, 1], cells[:, 0]] = sp2 + 25 * sth2
+    g["pose_placement"][cells[:, 1], cells[:, 0]] = est.add_placement((sth2, 0.0, 0.0, sp2, 0.0, 0.0))
     cov, region = est.matched_map_covariance(pts, pose)
     assert cov[0, 0] == pytest.approx(sp2, rel=1e-3)
     assert cov[1, 1] == pytest.approx(sp2 + 16 * sth2, rel=1e-3)  # lever arm 4 m
@@ -256,8 +255,10 @@ def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
     ranges = np.full(4, 3.0)
     est.store_map_variance(angles, ranges, 30.0)
     pivot_x = pth * 4.0 / (vr + pth)  # the variance-weighted pivot: 4 cm from the origin
-    assert g["pose_var_yaw"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(vr + pth)
-    assert g["pose_var_pivot_x"][np.isfinite(g["pose_var_yaw"])] == pytest.approx(pivot_x, abs=1e-6)
+    yaw = est.placement_field("pose_var_yaw")
+    placed = np.isfinite(yaw)
+    assert yaw[placed] == pytest.approx(vr + pth)
+    assert est.placement_field("pose_var_pivot_x")[placed] == pytest.approx(pivot_x, abs=1e-6)
     pose2 = np.array([12.0, 0.0, 0.0])  # the same cells seen from 8 m further on
     world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
     cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
@@ -286,8 +287,9 @@ def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
     angles = np.array([0.5, 0.7, -0.5, -0.7])
     ranges = np.full(4, 3.0)
     est.store_map_variance(angles, ranges, 30.0)
-    placed = np.isfinite(g["pose_var_yaw"])
-    assert g["pose_sys_x"][placed] == pytest.approx(0.003) and g["pose_sys_y"][placed] == pytest.approx(0.0)
+    placed = np.isfinite(est.placement_field("pose_var_yaw"))
+    sys_x, sys_y = est.placement_field("pose_sys_x"), est.placement_field("pose_sys_y")
+    assert sys_x[placed] == pytest.approx(0.003) and sys_y[placed] == pytest.approx(0.0)
     world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
     pose2 = np.array([5.0, 0.0, 0.0])
     cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
@@ -299,8 +301,8 @@ def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
     est.ekf.pose = np.array([5.0, 0.0, np.pi / 2])
     est.store_map_variance(np.array([0.1]), np.array([1.0]), 30.0)
     cell = g.world_to_cell(np.array([5.0 + np.cos(np.pi / 2 + 0.1), np.sin(np.pi / 2 + 0.1)]))
-    assert g["pose_sys_x"][cell[1], cell[0]] == pytest.approx(0.003)
-    assert g["pose_sys_y"][cell[1], cell[0]] == pytest.approx(0.001)
+    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == pytest.approx(0.003)
+    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == pytest.approx(0.001)
 
 
 def test_the_match_bias_enters_only_the_directions_the_match_fused():
@@ -313,21 +315,22 @@ def test_the_match_bias_enters_only_the_directions_the_match_fused():
     est.ekf.pose = np.array([0.0, 0.0, 0.3])
     est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
     cell = g.world_to_cell(2.0 * np.array([np.cos(0.3), np.sin(0.3)]))
-    assert g["pose_sys_x"][cell[1], cell[0]] == pytest.approx(0.0, abs=1e-9)
-    assert g["pose_sys_y"][cell[1], cell[0]] == pytest.approx(0.001 * np.sin(0.3), rel=1e-5)
+    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == pytest.approx(0.0, abs=1e-9)
+    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == pytest.approx(0.001 * np.sin(0.3), rel=1e-5)
     est._fused_h = np.zeros((0, 3))
     est.ekf.pose = np.array([0.0, 0.0, -1.0])
     est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
     cell = g.world_to_cell(2.0 * np.array([np.cos(-1.0), np.sin(-1.0)]))
-    assert g["pose_sys_x"][cell[1], cell[0]] == 0.0 and g["pose_sys_y"][cell[1], cell[0]] == 0.0
+    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == 0.0
+    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == 0.0
 
 
 def test_without_the_match_bias_the_map_carries_no_systematic_error():
     est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
     est.occupancy.grid.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
     est.store_map_variance(np.array([0.0, 1.0]), np.array([2.0, 2.0]), 30.0)
-    g = est.occupancy.grid
-    assert not np.any(g["pose_sys_x"]) and not np.any(g["pose_sys_y"])
+    assert np.isfinite(est.placement_field("pose_var_yaw")).sum() == 2  # two cells placed
+    assert not np.any(est.placement_field("pose_sys_x")) and not np.any(est.placement_field("pose_sys_y"))
 
 
 def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
@@ -392,9 +395,8 @@ def test_coming_back_onto_older_map_moves_the_drop_of_the_map_part_into_the_filt
     pose = np.array([0.0, 0.0, 0.0])
     cells = g.world_to_cell(pts + pose[:2])
     old, new = 0.03 ** 2, 0.002 ** 2
-    for name, val in (("pose_var_xy", new), ("pose_var_yaw", 0.0), ("pose_var_pivot_x", 0.0),
-                      ("pose_var_pivot_y", 0.0), ("pose_var_shift", new)):
-        g[name][cells[:, 1], cells[:, 0]] = val
+    g["pose_var_xy"][cells[:, 1], cells[:, 0]] = new
+    g["pose_placement"][cells[:, 1], cells[:, 0]] = est.add_placement((0.0, 0.0, 0.0, new, 0.0, 0.0))
     est.map_region = MapRegion(shift_var=old, yaw_var=0.0, pivot=np.zeros(2))
     before = est.ekf.cov.copy()
     est._transfer_map_switch(pts, pose)

@@ -63,25 +63,22 @@ def test_keep_best_placement_equals_minimum_at():
         pivot = rng.uniform(-1, 1, 2)
         if k == 0:
             base = np.nan  # NaN propagates as in np.minimum
-        vals = rng.normal(size=6).astype(np.float32)
-        others0 = [rng.normal(size=g.shape).astype(np.float32) for _ in range(6)]
+        index = int(rng.integers(1, 1000))
+        placement0 = rng.integers(0, 1000, size=g.shape).astype(np.int32)
         # the numpy code of PoseEstimator.store_map_variance
         cells = g.world_to_cell(end)
         ok = g.in_bounds(cells)
         cells, e = cells[ok], end[ok]
         flat = cells[:, 1] * g.shape[1] + cells[:, 0]
         var = (base + vyaw * np.sum((e - pivot) ** 2, axis=1)).astype(np.float32)
-        want_var, want = var0.copy(), [a.copy() for a in others0]
+        want_var, want = var0.copy(), placement0.copy()
         lay = want_var.reshape(-1)
         before = lay[flat]
         with np.errstate(invalid="ignore"):
             np.minimum.at(lay, flat, var)
-        upd = flat[lay[flat] < before]
-        for a, v in zip(want, vals):
-            a.reshape(-1)[upd] = v
-        got_var, got = var0.copy(), [a.copy() for a in others0]
-        keep_best_placement(got_var, *got, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution), base,
-                            vyaw, float(pivot[0]), float(pivot[1]), vals)
+        want.reshape(-1)[flat[lay[flat] < before]] = index
+        got_var, got = var0.copy(), placement0.copy()
+        keep_best_placement(got_var, got, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution), base,
+                            vyaw, float(pivot[0]), float(pivot[1]), index)
         assert got_var.tobytes() == want_var.tobytes()
-        for a, b in zip(got, want):
-            assert a.tobytes() == b.tobytes()
+        assert got.tobytes() == want.tobytes()
