@@ -289,10 +289,19 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
     if parent_pid is not None:
         _process_setup(parent_pid)
     from glassmap.pose.backend import GraphBackEnd
+    from runtime.tuning import release_compiler_pages
 
     be = GraphBackEnd(settings.config, settings.sigma_hit)
     outbox.put(("ready",))
     busy, dirty, last_rebuild, failed = 0.0, False, -float("inf"), False
+    # the kernels load at the first closure check and the first map rebuild: after each, LLVM's pages go
+    # (runtime.tuning)
+    loaded: set[str] = set()
+
+    def loaded_now(what: str) -> None:
+        if what not in loaded:
+            loaded.add(what)
+            release_compiler_pages()
 
     def send_maps(token, refresh: bool) -> None:
         nonlocal dirty, last_rebuild
@@ -306,6 +315,7 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
                 glass = gm.copy_maps()
                 occ = glass.occupancy
         outbox.put(("maps", token, be.stamps(), poses, len(be.closures), occ, glass, time.perf_counter() - t))
+        loaded_now("maps")
 
     while True:
         msg = inbox.get()
@@ -319,6 +329,8 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
             if msg[0] == "key":
                 if be.add(msg[1]):
                     dirty = True
+                if be.closer.stats.checks:
+                    loaded_now("check")
                 busy += time.perf_counter() - t
                 outbox.put(("done", len(be), be.correction(), len(be.closures), busy))
                 # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
