@@ -76,11 +76,12 @@ MADV_PAGEOUT = 21  # Linux >= 5.4
 COMPILER_LIBRARIES = ("libllvmlite",)  # file names of the JIT compiler's shared libraries (numba's LLVM)
 
 
-def release_compiler_pages() -> int:
-    """Hand the resident pages of the JIT compiler's shared libraries (:data:`COMPILER_LIBRARIES`) back to
-    the system (``madvise(MADV_PAGEOUT)`` on their mappings in /proc/self/maps): call once the kernels are
-    loaded. Returns the number of bytes of mappings advised (0 off Linux, on kernels without
-    MADV_PAGEOUT, or before numba has been imported)."""
+def release_compiler_pages(libraries: tuple[str, ...] = COMPILER_LIBRARIES) -> int:
+    """Hand the resident pages of the JIT compiler's shared libraries (file names starting with one of
+    ``libraries``) back to the system (``madvise(MADV_PAGEOUT)`` on their mappings in /proc/self/maps): call
+    once the kernels are loaded. Pages another process maps as well stay (the kernel skips them). Returns the
+    number of bytes of mappings advised (0 off Linux, on kernels without MADV_PAGEOUT, or before numba has
+    been imported)."""
     try:
         with open("/proc/self/maps") as f:
             lines = f.read().splitlines()
@@ -91,7 +92,7 @@ def release_compiler_pages() -> int:
     done = 0
     for line in lines:
         parts = line.split(maxsplit=5)
-        if len(parts) < 6 or not os.path.basename(parts[5]).startswith(COMPILER_LIBRARIES):
+        if len(parts) < 6 or not os.path.basename(parts[5]).startswith(libraries):
             continue
         lo, hi = (int(v, 16) for v in parts[0].split("-"))
         if madvise(lo, hi - lo, MADV_PAGEOUT) == 0:

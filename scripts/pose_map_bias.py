@@ -187,8 +187,8 @@ def _predictors(ranges: np.ndarray, res, along: np.ndarray, sigma_hit: float) ->
     with np.errstate(invalid="ignore"):
         jump = np.abs(np.diff(r)) > np.maximum(0.15, 0.05 * np.minimum(r[:-1], r[1:]))
     info = np.where(np.isfinite(res.information), res.information, 0.0)
-    return (float(np.sum(jump & np.isfinite(np.minimum(r[:-1], r[1:])))), float(np.sqrt(along @ res.covariance @ along)),
-            float(along @ info @ along) * sigma_hit ** 2)
+    jumps = float(np.sum(jump & np.isfinite(np.minimum(r[:-1], r[1:]))))
+    return jumps, float(np.sqrt(along @ res.covariance @ along)), float(along @ info @ along) * sigma_hit ** 2
 
 
 def _print_predictors(err: np.ndarray, pred: np.ndarray) -> None:

@@ -275,12 +275,11 @@ class PoseEstimator:
         self._n_placements = 1
         if config.map_uncertainty:
             g = self.occupancy.grid
-            if MAP_VAR_LAYER not in g.layer_names:
-                g.add_layer(MAP_VAR_LAYER, np.inf, np.float32)
-            if MAP_PLACEMENT_LAYER not in g.layer_names:
-                g.add_layer(MAP_PLACEMENT_LAYER, 0, np.int32)
-            else:  # rows of another estimator's table: this one knows none of them
-                g[MAP_PLACEMENT_LAYER][...] = 0
+            for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32)):
+                if name in g.layer_names:  # another estimator's placements: this one's table knows none of them
+                    g[name][...] = fill
+                else:
+                    g.add_layer(name, fill, dtype)
 
     # ------------------------------------------------------------------ inputs
     def predict(self, odom: Odometry) -> None:

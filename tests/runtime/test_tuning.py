@@ -144,3 +144,45 @@ def test_the_jit_compilers_pages_go_back_and_kernels_still_compile_and_run(tmp_p
     # the pages only this process maps leave it (tens of MiB in a fresh interpreter; pages another process
     # maps too, e.g. a test runner that has run kernels, are shared and stay: the kernel skips those)
     assert out["left"] <= 4 * 1024
+
+
+def _on_tmpfs(path) -> bool:
+    """Whether ``path`` lies on a tmpfs (its pages are shared memory: without swap they cannot be paged out)."""
+    best, fstype = "", ""
+    with open("/proc/self/mounts") as f:
+        for line in f:
+            mount, kind = line.split()[1:3]
+            if str(path).startswith(mount) and len(mount) > len(best):
+                best, fstype = mount, kind
+    return fstype == "tmpfs"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/maps and MADV_PAGEOUT are Linux's")
+def test_release_compiler_pages_pages_out_a_mapped_library_file_only_this_process_maps(tmp_path):
+    # the numba probe above shares LLVM's pages with a test runner that has run kernels (they then stay):
+    # a file of our own, mapped by this process only, shows the release itself
+    if _on_tmpfs(tmp_path):
+        pytest.skip("tmp_path is on a tmpfs")
+    lib = tmp_path / "libfakecompiler.so"
+    lib.write_bytes(os.urandom(8 * 2 ** 20))
+    import mmap
+
+    from runtime.tuning import release_compiler_pages
+
+    def resident_kib() -> int:
+        total, name = 0, ""
+        with open("/proc/self/smaps") as f:
+            for line in f:
+                head = line.split()
+                if "-" in head[0] and ":" not in head[0]:
+                    name = head[5] if len(head) > 5 else ""
+                elif head[0] == "Rss:" and name == str(lib):
+                    total += int(head[1])
+        return total
+
+    with open(lib, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+        assert sum(m[i] for i in range(0, len(m), 4096)) >= 0  # every page touched
+        before = resident_kib()
+        assert release_compiler_pages(("libfakecompiler",)) == len(m)
+        after = resident_kib()
+    assert before >= 7 * 1024 and after <= 256
