@@ -42,7 +42,6 @@ from glassmap.pose.keyscan import KeyScan
 log = logging.getLogger(__name__)
 
 START_TIMEOUT = 60.0  # s for the process to import what it needs and say it is ready
-NICE = 5  # the worker process's niceness increment: the scans come first on a busy machine
 
 
 class GraphWorkerError(RuntimeError):
@@ -359,12 +358,9 @@ def _process_setup(parent_pid: int) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        os.nice(NICE)
-    except OSError:
-        pass
-    from runtime.tuning import one_blas_thread
+    from runtime.tuning import background_priority, one_blas_thread
 
+    background_priority()
     one_blas_thread()
 
     def watch() -> None:

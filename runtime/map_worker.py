@@ -21,6 +21,7 @@ import time
 from concurrent.futures.process import BrokenProcessPool
 
 from glassmap.mapping import MapCopy
+from runtime.tuning import background_priority
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +82,8 @@ class MapWorker:
 
 # -- run in the worker process ---------------------------------------------------------------------------
 def _init(parent_pid: int) -> None:
-    """Worker start: end when the runtime's process is gone (a SIGKILL runs no clean-up there), then import
-    what the work needs so that the first export is not slow."""
+    """Worker start: end when the runtime's process is gone (a SIGKILL runs no clean-up there), lower
+    priority than the scans, then import what the work needs so that the first export is not slow."""
     import importlib
     import threading
 
@@ -92,6 +93,7 @@ def _init(parent_pid: int) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    background_priority()
     for name in ("matplotlib.image", "glassmap.render", "runtime.messages"):
         importlib.import_module(name)
 

@@ -33,6 +33,16 @@ import gc
 import os
 
 ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+BACKGROUND_NICE = 5  # niceness increment of the helper processes: on a busy machine the scans come first
+
+
+def background_priority() -> None:
+    """Lower this process's scheduling priority by :data:`BACKGROUND_NICE` (helper processes whose work can
+    wait: map exports, the pose graph); silently nothing where the system refuses."""
+    try:
+        os.nice(BACKGROUND_NICE)
+    except OSError:
+        pass
 
 
 def one_blas_thread() -> None:
