@@ -43,7 +43,6 @@ def machine_reference() -> str:
     """The CPU model and the time of a fixed pure-Python workload (3 million additions, best of three), so
     that figures from different machines can be compared."""
     import platform
-    import time
 
     model = platform.processor() or "unknown CPU"
     try:
@@ -51,6 +50,16 @@ def machine_reference() -> str:
             model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
     except OSError:
         pass
+    return (f"machine: {model}, {os.cpu_count()} cores; reference workload (3 M Python additions) "
+            f"{reference_workload_ms():.0f} ms")
+
+
+def reference_workload_ms() -> float:
+    """Time (ms) of a fixed pure-Python workload (3 million additions, best of three) on this process's CPUs
+    now: the machine's speed at the time of a measurement (a virtual machine's speed can drift by half
+    within minutes)."""
+    import time
+
     best = float("inf")
     for _ in range(3):
         t = time.perf_counter()
@@ -58,7 +67,7 @@ def machine_reference() -> str:
         for i in range(3_000_000):
             s += i
         best = min(best, time.perf_counter() - t)
-    return f"machine: {model}, {os.cpu_count()} cores; reference workload (3 M Python additions) {1e3 * best:.0f} ms"
+    return 1e3 * best
 
 
 def reset_peak_rss() -> bool:
@@ -86,15 +95,18 @@ def peak_rss_mib() -> float:
 
 _PINNED_CHILD = """
 import json, os, pickle, sys
+from runtime.bench import reference_workload_ms
 from runtime.readers import ReplayInputError
 from runtime.replay import replay_file
 config = pickle.load(sys.stdin.buffer)
+reference_ms = reference_workload_ms()  # the machine's speed on this core, just before this run
 try:
     source, r = "raw", replay_file(sys.argv[1], config, source="raw", progress=False, as_recorded=False)
 except ReplayInputError:  # recorded without the raw bytes
     source, r = "messages", replay_file(sys.argv[1], config, progress=False, as_recorded=False)
 print("PINNED " + json.dumps({"source": source, "scans": r.scans, "wall": r.wall_time, "rate": r.scans_per_second,
-                               "speedup": r.speedup, "cpus": sorted(os.sched_getaffinity(0))}))
+                               "speedup": r.speedup, "cpus": sorted(os.sched_getaffinity(0)),
+                               "reference_ms": reference_ms}))
 """
 
 
@@ -131,7 +143,7 @@ def pinned_replay(recording: str | Path, config=None, root: str | Path | None = 
 def _pinned_line(recording: str | Path, config, runs: int, beside: str) -> str:
     """``runs`` replays pinned to one core, as one line: each run's rate and their median (the machine's
     speed drifts from minute to minute: one short run is a sample, not the figure)."""
-    rates, p, cpu = [], None, None
+    rates, refs, p, cpu = [], [], None, None
     for _ in range(runs):
         try:
             got = pinned_replay(recording, config)
@@ -141,10 +153,12 @@ def _pinned_line(recording: str | Path, config, runs: int, beside: str) -> str:
             return "replay pinned to one core: not possible here (no CPU affinity on this system)"
         cpu, p = got
         rates.append(p["rate"])
+        refs.append(p["reference_ms"])
     med = float(np.median(rates))
     return (f"replay from {p['source']}, pinned to one core (CPU {cpu}; a child process per run, {beside}): "
             f"{p['scans']} scans, {runs} run{'s' if runs != 1 else ''}: {', '.join(f'{r:.0f}' for r in rates)} "
-            f"scans/s; median {med:.0f} scans/s = {med * p['speedup'] / p['rate']:.1f}x real time")
+            f"scans/s; median {med:.0f} scans/s = {med * p['speedup'] / p['rate']:.1f}x real time; reference "
+            f"workload on that core before each run {', '.join(f'{r:.0f}' for r in refs)} ms")
 
 
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
@@ -209,6 +223,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
+        lines.append(f"  machine speed at the end of the live run: reference workload {reference_workload_ms():.0f} ms "
+                     "(at its start: the first line)")
         peaks["live runtime"] = peak_rss_mib()
         release_memory()
     for source in ("messages", "raw"):

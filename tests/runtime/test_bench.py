@@ -40,6 +40,7 @@ def test_pinned_replay_runs_every_scan_on_one_cpu(tmp_path):
     cpu, r = got
     assert r["cpus"] == [cpu] and r["scans"] == 12 and r["rate"] > 0
     assert r["source"] == "messages"  # this recording has no raw bytes
+    assert r["reference_ms"] > 0  # the machine's speed on that core at the time of the run
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="CPU affinity is Linux only")
@@ -50,7 +51,9 @@ def test_the_one_core_figure_is_the_median_of_the_pinned_runs(tmp_path):
     line = _pinned_line(recording(tmp_path / "rec.mcap", n=12), None, 3, "0 busy processes beside it")
     m = re.fullmatch(r"replay from messages, pinned to one core \(CPU \d+; a child process per run, 0 busy processes "
                      r"beside it\): 12 scans, 3 runs: (\d+), (\d+), (\d+) scans/s; median (\d+) scans/s = "
-                     r"[\d.]+x real time", line)
+                     r"[\d.]+x real time; reference workload on that core before each run (\d+), (\d+), (\d+) ms",
+                     line)
     assert m, line
     rates = sorted(int(g) for g in m.groups()[:3])
     assert int(m.group(4)) == rates[1]
+    assert all(int(g) > 0 for g in m.groups()[4:])
