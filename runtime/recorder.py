@@ -43,6 +43,9 @@ log = logging.getLogger(__name__)
 
 PROFILE = "ros2"
 _STOP = object()
+# The writer thread takes what is queued, then sleeps this long (s) before it waits for more: one wake-up per
+# period instead of one per message (~7 per scan), each of which would take the GIL from the processing thread.
+WAKE_PERIOD = 0.05
 # Topics whose latest message starts every split file (latched, as in ROS).
 LATCHED_TOPICS = frozenset({"/tf_static"})
 
@@ -250,32 +253,38 @@ class McapRecorder:
                 item = self._queue.get(timeout=timeout if dirty else None)
             except queue.Empty:
                 item = None
-            if item is _STOP:
-                return
-            try:
-                if item is not None:
-                    topic, msg, log_ns, pub_ns = item
-                    if callable(msg):
-                        msg = msg()
-                    data = bytes(msg if isinstance(msg, bytes) else ts.serialize_cdr(msg, self.topics[topic]))
-                    if self._split_due():
-                        self._next_split()
-                        last_flush, dirty = time.monotonic(), False
-                    self._add(topic, data, log_ns, pub_ns)
-                    if topic in LATCHED_TOPICS:
-                        self._latched[topic] = (data, log_ns, pub_ns)
-                    dirty = True
-                if dirty and time.monotonic() - last_flush >= self.chunk_interval:
-                    self._writer.flush()  # closes the chunk and flushes the file
-                    self.stats.chunks_flushed += 1
-                    last_flush = time.monotonic()
-                    dirty = False
-            except OSError as exc:
-                self._stop_on_error(exc)
-                return
-            except Exception as exc:  # a bad message must not kill the recording
-                self.stats.errors += 1
-                log.warning("recorder: message on %s not recorded: %s", item[0] if item else "?", exc)
+            while True:  # everything queued now, then a pause (see WAKE_PERIOD)
+                if item is _STOP:
+                    return
+                try:
+                    if item is not None:
+                        topic, msg, log_ns, pub_ns = item
+                        if callable(msg):
+                            msg = msg()
+                        data = bytes(msg if isinstance(msg, bytes) else ts.serialize_cdr(msg, self.topics[topic]))
+                        if self._split_due():
+                            self._next_split()
+                            last_flush, dirty = time.monotonic(), False
+                        self._add(topic, data, log_ns, pub_ns)
+                        if topic in LATCHED_TOPICS:
+                            self._latched[topic] = (data, log_ns, pub_ns)
+                        dirty = True
+                    if dirty and time.monotonic() - last_flush >= self.chunk_interval:
+                        self._writer.flush()  # closes the chunk and flushes the file
+                        self.stats.chunks_flushed += 1
+                        last_flush = time.monotonic()
+                        dirty = False
+                except OSError as exc:
+                    self._stop_on_error(exc)
+                    return
+                except Exception as exc:  # a bad message must not kill the recording
+                    self.stats.errors += 1
+                    log.warning("recorder: message on %s not recorded: %s", item[0] if item else "?", exc)
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+            time.sleep(WAKE_PERIOD)
 
     def _stop_on_error(self, exc: OSError) -> None:
         full = exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
