@@ -23,6 +23,7 @@ messages after it are dropped and counted, what was written stays readable (:fun
 from __future__ import annotations
 
 import errno
+import itertools
 import logging
 import queue
 import threading
@@ -253,9 +254,10 @@ class McapRecorder:
                 item = self._queue.get(timeout=timeout if dirty else None)
             except queue.Empty:
                 item = None
-            while True:  # everything queued now, then a pause (see WAKE_PERIOD)
+            for item in itertools.chain((item,), self._queued()):  # what is queued now, then a pause (WAKE_PERIOD)
                 if item is _STOP:
                     return
+                added = False
                 try:
                     if item is not None:
                         topic, msg, log_ns, pub_ns = item
@@ -266,6 +268,7 @@ class McapRecorder:
                             self._next_split()
                             last_flush, dirty = time.monotonic(), False
                         self._add(topic, data, log_ns, pub_ns)
+                        added = True
                         if topic in LATCHED_TOPICS:
                             self._latched[topic] = (data, log_ns, pub_ns)
                         dirty = True
@@ -275,15 +278,13 @@ class McapRecorder:
                         last_flush = time.monotonic()
                         dirty = False
                 except OSError as exc:
+                    if item is not None and not added:  # the message whose write failed
+                        self.stats.dropped[item[0]] += 1
                     self._stop_on_error(exc)
                     return
                 except Exception as exc:  # a bad message must not kill the recording
                     self.stats.errors += 1
                     log.warning("recorder: message on %s not recorded: %s", item[0] if item else "?", exc)
-                try:
-                    item = self._queue.get_nowait()
-                except queue.Empty:
-                    break
             time.sleep(WAKE_PERIOD)
 
     def _stop_on_error(self, exc: OSError) -> None:
@@ -297,12 +298,16 @@ class McapRecorder:
         log.error("%s", self.stats.stopped)
         self._drain()
 
-    def _drain(self) -> None:
+    def _queued(self) -> Iterator:
+        """The queued messages, taken one at a time without waiting (what is not taken stays queued)."""
         while True:
             try:
-                item = self._queue.get_nowait()
+                yield self._queue.get_nowait()
             except queue.Empty:
                 return
+
+    def _drain(self) -> None:
+        for item in self._queued():
             if item is not _STOP:
                 self.stats.dropped[item[0]] += 1
 

@@ -115,6 +115,13 @@ from runtime.recorder import McapRecorder, RecorderError
 from runtime.sink import RecordingSink
 from tests.runtime.factories import make_odom, make_scan
 rec = McapRecorder({path!r}, chunk_size=8192, chunk_interval=0.05)
+submitted = 0
+write = rec.write
+def counted(*args, **kwargs):
+    global submitted
+    submitted += 1
+    return write(*args, **kwargs)
+rec.write = counted
 sink = RecordingSink(rec, M.TimeBase(1_700_000_000_000_000_000))
 for k in range(600):  # the producer (the runtime) never notices: write() never blocks or raises
     sink.odometry(make_odom(1.0 + 0.025 * k))
@@ -125,7 +132,8 @@ try:
     err = ""
 except RecorderError as exc:
     err = str(exc)
-print(json.dumps({{"error": err, "written": rec.stats.total_written, "dropped": rec.stats.total_dropped}}))
+print(json.dumps({{"error": err, "written": rec.stats.total_written, "dropped": rec.stats.total_dropped,
+                  "submitted": submitted}}))
 """
 
 
@@ -138,6 +146,7 @@ def test_full_disk_stops_the_recording_cleanly_and_what_was_written_reads_back(t
     out = json.loads(p.stdout.strip().splitlines()[-1])
     assert "the disk is full or a file-size limit was reached" in out["error"]
     assert out["written"] > 0 and out["dropped"] > 0
+    assert out["written"] + out["dropped"] == out["submitted"]  # nothing lost without being counted
     # one clear message, no traceback
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len([ln for ln in lines if "recording stopped" in ln]) == 1, p.stderr
