@@ -184,7 +184,7 @@ class Runtime:
             log_state = _record_info_logs(rosout)
         self.stage = ProcessingStage(self.processor, queue_size=cfg.pipeline.queue_size,
                                      max_scan_age=cfg.pipeline.max_scan_age, odom_buffer=cfg.pipeline.odom_buffer,
-                                     on_result=self._on_result)
+                                     on_result=self._on_result, nice=cfg.pipeline.nice)
         failure: BaseException | None = None
         try:
             with handle_signals(stop):

@@ -200,9 +200,10 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
     from runtime.tuning import release_memory
 
     lc = config is not None and config.mapping.loop_closure
+    nice = config.pipeline.nice if config is not None else 0
     lines = [machine_reference() + f" ({beside})",
              f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
-             "(--mapping.loop_closure)"]
+             f"(--mapping.loop_closure); processing thread niceness {nice} (--pipeline.nice)"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     replay_config = config

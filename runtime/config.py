@@ -129,6 +129,9 @@ class PipelineConfig:
     max_scan_age: float = setting(0.5, "a scan older than this (s, host clock) when processing starts is dropped "
                                   "(and counted) as stale")
     odom_buffer: int = setting(400, "odometry messages kept for interpolation")
+    nice: int = setting(0, "niceness of the scan-processing thread (Linux; -20 first .. 19 last): below 0 puts "
+                        "the scans before other programs on a busy laptop; needs CAP_SYS_NICE or 'ulimit -e' "
+                        "(refused: a warning, default priority)")
 
 
 @dataclass
@@ -195,6 +198,8 @@ class RuntimeConfig:
             raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
         if self.pipeline.queue_size < 1:
             raise ConfigError("pipeline.queue_size must be >= 1")
+        if not -20 <= self.pipeline.nice <= 19:
+            raise ConfigError(f"pipeline.nice must be in -20 .. 19, got {self.pipeline.nice}")
         if self.pipeline.max_scan_age <= 0:
             raise ConfigError("pipeline.max_scan_age must be > 0 s")
         if self.output.live:

@@ -80,14 +80,17 @@ class ProcessingStage:
 
     def __init__(self, processor: ScanProcessor, *, queue_size: int = 4, max_scan_age: float = 0.5,
                  odom_buffer: int = 400, on_result: Callable[[ScanResult], None] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, nice: int = 0) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be >= 1")
         if max_scan_age <= 0:
             raise ValueError("max_scan_age must be > 0")
+        if not -20 <= nice <= 19:
+            raise ValueError("nice must be in -20 .. 19")
         self.processor = processor
         self.queue_size = queue_size
         self.max_scan_age = max_scan_age
+        self.nice = nice
         self.on_result = on_result
         self.clock = clock
         self.stats = StageStats()
@@ -153,6 +156,8 @@ class ProcessingStage:
     def _work(self, loop: asyncio.AbstractEventLoop, done: asyncio.Future) -> None:
         """The processing thread: take the oldest scan, drop it if stale, process it, hand the result over."""
         error: BaseException | None = None
+        if self.nice:
+            set_thread_niceness(self.nice)
         while True:
             with self._cond:
                 while not self._abandon and (self._calls_waiting or (not self._scans and not self._closed)):
@@ -223,6 +228,26 @@ class ProcessingStage:
             with self._cond:
                 self._calls_waiting -= 1
                 self._cond.notify()
+
+
+def set_thread_niceness(nice: int) -> bool:
+    """Set the calling thread's niceness (Linux: a thread's own scheduling priority; -20 first .. 19 last).
+    Below the process's own it needs CAP_SYS_NICE or a matching RLIMIT_NICE (``ulimit -e``); when refused,
+    or elsewhere than on Linux, logs a warning and returns False (the thread keeps its priority)."""
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        log.warning("pipeline.nice: a thread's own priority is Linux only; the scans run at the default")
+        return False
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+    except OSError as exc:
+        log.warning("pipeline.nice %d refused (%s): the scans run at the default priority. Below 0 needs "
+                    "CAP_SYS_NICE or a RLIMIT_NICE of at least %d (limits.conf 'nice' or 'ulimit -e')",
+                    nice, exc.strerror or exc, 20 - nice)
+        return False
+    return True
 
 
 def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> bool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import sys
 import threading
 
 import pytest
@@ -98,6 +99,8 @@ def test_bad_settings():
         ProcessingStage(Recorder(), queue_size=0)
     with pytest.raises(ValueError):
         ProcessingStage(Recorder(), max_scan_age=0)
+    with pytest.raises(ValueError):
+        ProcessingStage(Recorder(), nice=-21)
 
 
 @pytest.mark.parametrize("glass_scans", ["keys", "all"])
@@ -190,3 +193,47 @@ async def test_calls_run_between_scans_and_before_the_queued_ones():
     await runner
     assert log == ["scan 0", "call", "scan 1", "scan 2"]
     stage.shutdown()
+
+
+class NicenessProbe(Recorder):
+    """A processor that notes the niceness of the thread it runs in (Linux: each thread has its own)."""
+
+    def process(self, scan, odometry):
+        import os
+
+        self.niceness = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        return super().process(scan, odometry)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own priority is Linux only")
+async def test_the_processing_thread_runs_at_the_niceness_asked_for():
+    import os
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    proc = NicenessProbe()
+    stage = ProcessingStage(proc, max_scan_age=1e9, clock=lambda: 0.0, nice=min(base + 3, 19))
+    stage.submit_scan(make_scan(0.0, 0))
+    stage.close()
+    await stage.run()
+    stage.shutdown()
+    assert proc.niceness == min(base + 3, 19)
+    assert os.getpriority(os.PRIO_PROCESS, 0) == base  # the rest of the process is not touched
+
+
+async def test_a_refused_niceness_is_a_warning_and_the_scans_still_run(monkeypatch, caplog):
+    import os
+
+    def refuse(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "setpriority", refuse)
+    monkeypatch.setattr(sys, "platform", "linux")
+    proc = Recorder()
+    stage = ProcessingStage(proc, max_scan_age=1e9, clock=lambda: 0.0, nice=-5)
+    stage.submit_scan(make_scan(0.0, 0))
+    stage.close()
+    with caplog.at_level("WARNING", logger="runtime.pipeline"):
+        await stage.run()
+    stage.shutdown()
+    assert [c[0] for c in proc.calls] == [0]
+    assert any("pipeline.nice -5 refused" in r.getMessage() and "ulimit -e" in r.getMessage() for r in caplog.records)
