@@ -27,6 +27,7 @@ from typing import Protocol
 import numpy as np
 
 from glassmap.types import Odometry, PoseEstimate, Scan
+from runtime.tuning import thread_priority
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +158,7 @@ class ProcessingStage:
         """The processing thread: take the oldest scan, drop it if stale, process it, hand the result over."""
         error: BaseException | None = None
         if self.nice:
-            set_thread_niceness(self.nice)
+            thread_priority(self.nice)
         while True:
             with self._cond:
                 while not self._abandon and (self._calls_waiting or (not self._scans and not self._closed)):
@@ -228,26 +229,6 @@ class ProcessingStage:
             with self._cond:
                 self._calls_waiting -= 1
                 self._cond.notify()
-
-
-def set_thread_niceness(nice: int) -> bool:
-    """Set the calling thread's niceness (Linux: a thread's own scheduling priority; -20 first .. 19 last).
-    Below the process's own it needs CAP_SYS_NICE or a matching RLIMIT_NICE (``ulimit -e``); when refused,
-    or elsewhere than on Linux, logs a warning and returns False (the thread keeps its priority)."""
-    import os
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        log.warning("pipeline.nice: a thread's own priority is Linux only; the scans run at the default")
-        return False
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
-    except OSError as exc:
-        log.warning("pipeline.nice %d refused (%s): the scans run at the default priority. Below 0 needs "
-                    "CAP_SYS_NICE or a RLIMIT_NICE of at least %d (limits.conf 'nice' or 'ulimit -e')",
-                    nice, exc.strerror or exc, 20 - nice)
-        return False
-    return True
 
 
 def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> bool:

@@ -30,7 +30,11 @@ from __future__ import annotations
 
 import ctypes
 import gc
+import logging
 import os
+import sys
+
+_log = logging.getLogger(__name__)
 
 ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 BACKGROUND_NICE = 5  # niceness increment of the helper processes: on a busy machine the scans come first
@@ -43,6 +47,25 @@ def background_priority() -> None:
         os.nice(BACKGROUND_NICE)
     except OSError:
         pass
+
+
+def thread_priority(nice: int) -> bool:
+    """Set the calling thread's niceness (Linux: a thread's own scheduling priority; -20 first .. 19 last).
+    Below the process's own it needs CAP_SYS_NICE or a matching RLIMIT_NICE (``ulimit -e``); when refused,
+    or elsewhere than on Linux, logs a warning and returns False (the thread keeps its priority)."""
+    import threading
+
+    if not sys.platform.startswith("linux"):
+        _log.warning("pipeline.nice: a thread's own priority is Linux only; the scans run at the default")
+        return False
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+    except OSError as exc:
+        _log.warning("pipeline.nice %d refused (%s): the scans run at the default priority. Below 0 needs "
+                     "CAP_SYS_NICE or a RLIMIT_NICE of at least %d (limits.conf 'nice' or 'ulimit -e')",
+                     nice, exc.strerror or exc, 20 - nice)
+        return False
+    return True
 
 
 def one_blas_thread() -> None:

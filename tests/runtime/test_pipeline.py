@@ -232,7 +232,7 @@ async def test_a_refused_niceness_is_a_warning_and_the_scans_still_run(monkeypat
     stage = ProcessingStage(proc, max_scan_age=1e9, clock=lambda: 0.0, nice=-5)
     stage.submit_scan(make_scan(0.0, 0))
     stage.close()
-    with caplog.at_level("WARNING", logger="runtime.pipeline"):
+    with caplog.at_level("WARNING", logger="runtime.tuning"):
         await stage.run()
     stage.shutdown()
     assert [c[0] for c in proc.calls] == [0]
