@@ -6,8 +6,9 @@ seeds 1000-1999); on test worlds (seeds 0-99) it only reports.
 Usage: .venv/bin/python scripts/pose_consistency.py WORLD.toml[,WORLD.toml...] [--seeds 0-2] [--route short]
            [--set map_bias_per_match=0.002] [--scale-sys 0,1.5] [--workers 1] [--cache DIR] [--out runs.csv]
 
-``--set`` overrides EstimatorConfig fields (numbers or booleans); ``--cache`` keeps the simulated runs as
-.npz files so that variants of the estimator are compared on the same runs without simulating again.
+``--set`` overrides EstimatorConfig fields (numbers or booleans; nested ones dotted: matcher.voxel=0.1);
+``--cache`` keeps the simulated runs as .npz files so that variants of the estimator are compared on the same
+runs without simulating again.
 """
 
 from __future__ import annotations
@@ -31,14 +32,23 @@ INSIDE_MIN = 0.85
 
 def _config(sets: list[str]) -> EstimatorConfig:
     cfg = EstimatorConfig()
-    types = {f.name: f.type for f in fields(EstimatorConfig)}
     for kv in sets:
         k, v = kv.split("=", 1)
-        if k not in types:
-            raise SystemExit(f"no EstimatorConfig field {k!r}")
-        cur = getattr(cfg, k)
-        cfg = replace(cfg, **{k: (v.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else type(cur)(float(v))})
+        cfg = _override(cfg, k.split("."), v)
     return cfg
+
+
+def _override(obj, path: list[str], value: str):
+    """The dataclass ``obj`` with the field ``path`` (nested: ["matcher", "voxel"]) set to ``value`` (a number
+    or a boolean)."""
+    name = path[0]
+    if name not in {f.name for f in fields(obj)}:
+        raise SystemExit(f"no {type(obj).__name__} field {name!r}")
+    cur = getattr(obj, name)
+    if len(path) > 1:
+        return replace(obj, **{name: _override(cur, path[1:], value)})
+    new = (value.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else type(cur)(float(value))
+    return replace(obj, **{name: new})
 
 
 def _one(job: tuple) -> dict:

@@ -17,7 +17,7 @@ comes from", has the findings.
 
 Usage: .venv/bin/python scripts/pose_map_bias.py WORLD [--seconds 20] [--seed 0] [--route short]
            [--no-range-noise] [--map-true-ranges] [--match-true-ranges] [--full-map]
-           [--field line_normals=0,pool=2] [--refresh N] [--dump X:Y]
+           [--field line_normals=0,pool=2] [--matcher voxel=0.1] [--refresh N] [--dump X:Y]
 Use validation worlds (seeds 1000-1999), built-in ones or tests/pose/data/*.toml, never test worlds.
 """
 
@@ -49,17 +49,18 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--match-true-ranges", action="store_true", help="match the noise-free ranges")
     ap.add_argument("--full-map", action="store_true", help="build the whole run's map first, then match")
     ap.add_argument("--field", default="", help="FieldParams overrides, e.g. line_normals=0,pool=2")
+    ap.add_argument("--matcher", default="", help="MatcherConfig overrides, e.g. voxel=0.1,max_points=300")
     ap.add_argument("--refresh", type=int, default=0, help="rebuild the field every N key scans (0: the estimator's)")
     ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
     return ap.parse_args()
 
 
-def _field_params(cfg: EstimatorConfig, text: str) -> EstimatorConfig:
-    fp = cfg.likelihood
+def _overrides(obj, text: str):
+    """The dataclass ``obj`` with the numeric fields of ``text`` ("name=value,...") set."""
     for kv in filter(None, text.split(",")):
         k, v = kv.split("=")
-        fp = replace(fp, **{k: type(getattr(fp, k))(float(v))})
-    return replace(cfg, likelihood=fp)
+        obj = replace(obj, **{k: type(getattr(obj, k))(float(v))})
+    return obj
 
 
 def main() -> int:
@@ -69,8 +70,8 @@ def main() -> int:
     if args.no_range_noise:
         laser = replace(laser, range_noise=0.0, range_noise_slope=0.0)
     run = simulate_run(world, args.route, seed=args.seed, laser_params=laser)
-    cfg = _field_params(EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]),
-                                        background_field=False), args.field)
+    cfg = EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]), background_field=False)
+    cfg = replace(cfg, likelihood=_overrides(cfg.likelihood, args.field), matcher=_overrides(cfg.matcher, args.matcher))
     if args.refresh:
         cfg = replace(cfg, field_refresh_scans=args.refresh)
     est = PoseEstimator(cfg)
@@ -154,7 +155,9 @@ def main() -> int:
         m = (e[:, 0] >= lo) & (e[:, 0] < hi)
         print(f"t {lo:4.1f}-{hi:4.1f} s: {m.sum():4d} matches, mean along {1000 * e[m, 1].mean():+6.2f} mm "
               f"(se {1000 * e[m, 1].std() / np.sqrt(max(m.sum(), 1)):.2f}), sideways {1000 * e[m, 2].mean():+6.2f} mm, "
-              f"yaw {1000 * e[m, 3].mean():+6.3f} mrad", flush=True)
+              f"yaw {1000 * e[m, 3].mean():+6.3f} mrad; median {1000 * np.median(e[m, 1]):+.2f}, "
+              f"trimmed (|e| < 1 cm, {np.sum(m & (np.abs(e[:, 1]) < 0.01))}) "
+              f"{1000 * e[m & (np.abs(e[:, 1]) < 0.01), 1].mean():+.2f} mm", flush=True)
     _print_predictors(e[:, 1], np.array(pred))
     print(f"the score's own maximum along the track (other axes at the truth): mean {1000 * np.mean(peaks):+.2f} mm "
           f"(se {1000 * np.std(peaks) / np.sqrt(len(peaks)):.2f}); vertex of the parabola through +-1 cell "
