@@ -25,7 +25,7 @@ from glassmap.sim.robot import OdometryNoise
 from glassmap.sim.world import load_world
 
 VARIANTS = ("default", "perfect-odometry", "no-mirror", "no-range-noise", "every-scan", "sigma-hit-5cm",
-            "field-every-1", "field-every-2", "field-every-10", "edges-5cm", "edges-10cm")
+            "field-every-1", "field-every-2", "field-every-10")
 
 
 def _first(run, seconds: float):
@@ -53,9 +53,7 @@ def main() -> int:
            "sigma-hit-5cm": replace(base, likelihood=replace(base.likelihood, sigma_hit=0.05)),
            "field-every-1": replace(base, field_refresh_scans=1),
            "field-every-2": replace(base, field_refresh_scans=2),
-           "field-every-10": replace(base, field_refresh_scans=10),
-           "edges-5cm": replace(base, matcher=replace(base.matcher, edge_clearance=0.05)),
-           "edges-10cm": replace(base, matcher=replace(base.matcher, edge_clearance=0.10))}
+           "field-every-10": replace(base, field_refresh_scans=10)}
     runs: dict[str, object] = {}
     for name in args.variants.split(","):
         if name not in VARIANTS:

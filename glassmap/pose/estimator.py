@@ -29,7 +29,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
-from glassmap.pose.estimator_jit import add_weighted_hits, add_hits, keep_best_placement, registration_sigmas
+from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.filter_jit import carried, rotated
@@ -46,7 +46,6 @@ GLASS_LAYER = "glass"
 _CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
 MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under its best placement
 MAP_PLACEMENT_LAYER = "pose_placement"  # int32: that placement's row in PoseEstimator's placement table
-MAP_SD_SUM_LAYER = "pose_sd_sum"  # sum over the cell's end points of their placement's standard deviation (m)
 # the columns of a placement's error model (a row per key scan placed, shared by every cell it placed best):
 # the map rotation variance (rad^2; inf: no placement yet), the pivot (map frame, m) of that rotation, the
 # shift variance (m^2 per axis), and the systematic error (m, map frame x and y): matches biased the same way
@@ -161,7 +160,6 @@ class EstimatorConfig:
     map_uncertainty: bool = True
     map_bias_per_match: float = 0.002
     map_switch_transfer: bool = False
-    map_error_mix: float = 0.0
     correlated_matches: bool = False
     subcell_walls: bool = True
 
@@ -277,8 +275,7 @@ class PoseEstimator:
         self._n_placements = 1
         if config.map_uncertainty:
             g = self.occupancy.grid
-            for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32),
-                                      (MAP_SD_SUM_LAYER, 0.0, np.float32)):
+            for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32)):
                 if name in g.layer_names:  # another estimator's placements: this one's table knows none of them
                     g[name][...] = fill
                 else:
@@ -567,14 +564,6 @@ class PoseEstimator:
             return
         g = self.occupancy.grid
         sx, sy, n = (g[name] for name in HIT_LAYERS)
-        hv = getattr(self, "_hit_var", None)
-        if hv is not None and MAP_SD_SUM_LAYER in g.layer_names and hv[0].shape == end.shape and np.array_equal(hv[0], end):
-            var = np.maximum(hv[1], 1e-12)
-            w = np.ones(len(end))
-            add_weighted_hits(sx, sy, n, g[MAP_SD_SUM_LAYER], end, w, np.sqrt(var), float(g.origin[0]),
-                              float(g.origin[1]), float(g.resolution))
-            self._hit_var = None
-            return
         add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
 
     # ------------------------------------------------------------------ map uncertainty
@@ -621,16 +610,6 @@ class PoseEstimator:
         if not fin.any():
             return self.map_cov, self.map_region
         model = model[fin]
-        if self.config.map_error_mix > 0 and HIT_LAYERS[2] in g.layer_names:
-            # the cell's wall point is the mean of all its end points: its error the mean of their placements'
-            # (standard deviations), not the best one's; the best placement's model scaled up to it
-            n = g[HIT_LAYERS[2]][cy, cx][fin].astype(np.float64)
-            mean_sd = g[MAP_SD_SUM_LAYER][cy, cx][fin].astype(np.float64) / np.maximum(n, 1.0)
-            best_sd = np.sqrt(np.maximum(model[:, 3] + model[:, 4] ** 2 + model[:, 5] ** 2, 1e-12))
-            ratio = 1.0 + self.config.map_error_mix * np.where(n > 0, np.maximum(mean_sd / best_sd - 1.0, 0.0), 0.0)
-            model = model.copy()
-            model[:, 3] *= ratio ** 2
-            model[:, 4:6] *= ratio[:, None]
         # contiguous, as the products and sums below were written for
         vyaw, pivot, shift, sys = (np.ascontiguousarray(model[:, k]) for k in (0, slice(1, 3), 3, slice(4, 6)))
         sv, ss = np.sqrt(np.maximum(vyaw, 0.0)), np.sqrt(np.maximum(shift, 0.0))
@@ -693,7 +672,6 @@ class PoseEstimator:
         sys = reg.sys + bias[:2]
         # the cell's own variance where smaller than before; the cells it fell in take this placement's model
         index = self.add_placement((vyaw, pivot[0], pivot[1], shift, sys[0], sys[1]))
-        self._hit_var = (end.copy(), np.full(len(end), shift + float(sys @ sys)))
         keep_best_placement(g[MAP_VAR_LAYER], g[MAP_PLACEMENT_LAYER], end, float(g.origin[0]), float(g.origin[1]),
                             float(g.resolution), shift + float(sys @ sys), vyaw, float(pivot[0]), float(pivot[1]),
                             index)

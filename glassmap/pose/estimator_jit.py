@@ -49,22 +49,6 @@ def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray,
 
 
 @_jit
-def add_weighted_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, sd_sum: np.ndarray, end: np.ndarray,
-                      w: np.ndarray, sd: np.ndarray, ox: float, oy: float, res: float) -> None:
-    """As add_hits with a weight per end point (the offsets and the count weighted), and w * sd into sd_sum."""
-    h, wd = count.shape
-    for i in range(end.shape[0]):
-        ix = np.int64(np.floor((end[i, 0] - ox) / res))
-        iy = np.int64(np.floor((end[i, 1] - oy) / res))
-        if ix < 0 or ix >= wd or iy < 0 or iy >= h:
-            continue
-        sx[iy, ix] += np.float32(w[i] * (end[i, 0] - (ox + ix * res)))
-        sy[iy, ix] += np.float32(w[i] * (end[i, 1] - (oy + iy * res)))
-        count[iy, ix] += np.float32(w[i])
-        sd_sum[iy, ix] += np.float32(w[i] * sd[i])
-
-
-@_jit
 def keep_best_placement(var: np.ndarray, placement: np.ndarray, end: np.ndarray, ox: float, oy: float,
                         res: float, base: float, vyaw: float, px: float, py: float, index: int) -> None:
     """Each end point's cell variance float32(base + vyaw |p - (px, py)|^2) into ``var`` ((h, w) float32)

@@ -71,9 +71,6 @@ class MatcherConfig:
     bilinear: bool = True
     independent_points: float = 120.0
     min_quality: float = 0.25
-    edge_clearance: float = 0.0
-    edge_turn: float = np.radians(30.0)
-    edge_shadow_only: bool = False
 
 
 @dataclass
@@ -135,13 +132,11 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     ok = np.isfinite(ranges) & (ranges >= config.range_min) & (ranges <= config.range_max)
     if weights is not None:
         ok &= np.isfinite(weights) & (weights > 0)
-    angles = np.asarray(angles, dtype=np.float64)
-    inc = _median(np.abs(np.diff(angles))) if angles.size > 1 else 1.0
-    if config.edge_clearance > 0 and ranges.size > 2:
-        ok &= ~near_edges(angles, ranges, inc, config.edge_clearance, config.edge_turn, config.edge_shadow_only)
     idx = np.flatnonzero(ok)
     if idx.size == 0:
         return np.zeros((0, 2)), np.zeros(0), idx
+    angles = np.asarray(angles, dtype=np.float64)
+    inc = _median(np.abs(np.diff(angles))) if angles.size > 1 else 1.0
     r = ranges[idx]
     # the stride comes from the neighbours' ranges, not the beam's own: otherwise whether a beam near a
     # stride boundary is kept would depend on the sign of its own range noise
@@ -163,44 +158,6 @@ def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, con
     pts = np.stack([mount[0] + r * np.cos(a), mount[1] + r * np.sin(a)], axis=1)
     w = np.ones(idx.size) if weights is None else np.asarray(weights, dtype=np.float64)[idx]
     return pts, w, idx
-
-
-def near_edges(angles: np.ndarray, ranges: np.ndarray, inc: float, clearance: float, turn: float,
-               shadow_only: bool = False, chord: float = 0.15) -> np.ndarray:
-    """Beams (bool, n) whose end point lies within ``clearance`` (m, along the scan) of a surface's edge: a
-    range jump between neighbouring beams (more than max(10 cm, 5 %): occluding and shadow edges, a return next
-    to no return) or a corner (the scan turns by more than ``turn`` (rad) between chords of ``chord`` m either
-    side)."""
-    n = ranges.size
-    fin = np.isfinite(ranges)
-    r = np.where(fin, ranges, np.nan)
-    with np.errstate(invalid="ignore"):
-        jump = ~(np.abs(np.diff(r)) <= np.maximum(0.10, 0.05 * np.fmin(r[:-1], r[1:])))
-    jump &= fin[:-1] | fin[1:]
-    flag = np.zeros(n, bool)
-    if shadow_only:  # the farther beam of a jump: where an occluded surface seems to end
-        both = jump & fin[:-1] & fin[1:]
-        with np.errstate(invalid="ignore"):
-            far_first = r[:-1] > r[1:]
-        flag[:-1] |= both & far_first
-        flag[1:] |= both & ~far_first
-    else:
-        flag[:-1] |= jump
-        flag[1:] |= jump
-    x, y = r * np.cos(angles), r * np.sin(angles)
-    arc = np.where(fin, r, 1.0) * max(inc, 1e-9)
-    i = np.arange(n)
-    s = np.clip(np.ceil(chord / arc), 1, 64).astype(np.int64)
-    lo, hi = np.clip(i - s, 0, n - 1), np.clip(i + s, 0, n - 1)
-    ax, ay = x - x[lo], y - y[lo]
-    bx, by = x[hi] - x, y[hi] - y
-    with np.errstate(invalid="ignore"):
-        cosang = (ax * bx + ay * by) / np.sqrt((ax * ax + ay * ay) * (bx * bx + by * by))
-        if turn < np.pi:
-            flag |= fin & (lo < i) & (hi > i) & (cosang < np.cos(turn))
-    m = np.clip(np.ceil(clearance / arc), 0, 256).astype(np.int64)
-    c = np.concatenate(([0], np.cumsum(flag)))
-    return (c[np.minimum(i + m + 1, n)] - c[np.maximum(i - m, 0)]) > 0
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
