@@ -196,11 +196,13 @@ def run_bench(world: str = "office", duration: float = 20.0, recording: str | No
 
 def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool,
          config=None, pinned_runs: int = 3) -> list[str]:
+    from runtime.config import PipelineConfig
     from runtime.replay import replay_file
     from runtime.tuning import release_memory
 
     lc = config is not None and config.mapping.loop_closure
-    nice = config.pipeline.nice if config is not None else 0
+    pipeline = config.pipeline if config is not None else PipelineConfig()
+    nice = pipeline.nice
     lines = [machine_reference() + f" ({beside})",
              f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
              f"(--mapping.loop_closure); processing thread niceness {nice} (--pipeline.nice)"]
@@ -219,6 +221,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         recording = res.recording
         lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time, {beside}): {s.stages.summary()}")
         lines.append(f"  latency scan bytes in -> maps updated: {_ms(res.latency)}")
+        lines.append(f"  most scans waiting for processing at once: {s.stages.most_waiting} "
+                     f"(the queue holds {pipeline.queue_size}: --pipeline.queue_size)")
         skip = int(round(STARTUP_S * 40))
         if len(res.latency) > 2 * skip:
             lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "

@@ -66,6 +66,7 @@ class StageStats:
     odometry_received: int = 0
     odometry_dropped: int = 0
     busy_time: float = 0.0  # seconds spent in the processor
+    most_waiting: int = 0  # the most scans waiting at once, counting one that arrived to a full queue
 
     def summary(self) -> str:
         return (f"scans received {self.scans_received}, processed {self.scans_processed}, "
@@ -111,6 +112,7 @@ class ProcessingStage:
         odoms = list(self._odom)
         self._odom.clear()
         with self._cond:
+            self.stats.most_waiting = max(self.stats.most_waiting, len(self._scans) + 1)
             if len(self._scans) >= self.queue_size:
                 old, _, old_odoms = self._scans.popleft()
                 self.stats.dropped_overflow += 1

@@ -49,6 +49,7 @@ async def test_processes_in_order_with_the_odometry_that_arrived_before_each_sca
     assert [r.scan.seq for r in results] == [1, 2]
     assert results[0].bytes_in_time == 0.25
     assert stage.stats.scans_processed == 2 and stage.stats.dropped_overflow == stage.stats.dropped_stale == 0
+    assert stage.stats.most_waiting == 2
     stage.shutdown()
 
 
@@ -62,6 +63,7 @@ async def test_full_queue_drops_oldest_and_counts_and_keeps_its_odometry():
         stage.submit_odometry(make_odom(float(seq)))
         stage.submit_scan(make_scan(float(seq), seq))
     assert stage.stats.dropped_overflow == 3 and stage.pending == 2
+    assert stage.stats.most_waiting == 3  # the two queued and the one that found the queue full
     proc.release.set()
     stage.close()
     await runner
