@@ -160,8 +160,6 @@ class EstimatorConfig:
     map_uncertainty: bool = True
     map_bias_per_match: float = 0.002
     map_switch_transfer: bool = False
-    map_inconsistency_travel: float = 0.0
-    hit_cap: float = 0.0
     correlated_matches: bool = False
     subcell_walls: bool = True
 
@@ -275,8 +273,6 @@ class PoseEstimator:
         # the placements' error models (PLACEMENT_FIELDS), a row per key scan; the grid holds each cell's row
         self._placements = np.array([_NO_PLACEMENT], dtype=np.float32)
         self._n_placements = 1
-        self._placement_travel = np.array([np.nan])  # path length (m) when each placement was made
-        self._travel = 0.0  # path length (m) of the odometry so far
         if config.map_uncertainty:
             g = self.occupancy.grid
             for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32)):
@@ -323,7 +319,6 @@ class PoseEstimator:
             self._ext = relative(odom_state, self.odometry.pose_at(stamp))
             self._extrapolated = self.odometry.extrapolation(stamp)
             delta = relative(self._last_odom, odom_state) if self._last_odom is not None else np.zeros(3)
-            self._travel += float(np.hypot(delta[0], delta[1]))
             self._last_odom = odom_state
         else:
             delta = np.zeros(3)
@@ -569,8 +564,7 @@ class PoseEstimator:
             return
         g = self.occupancy.grid
         sx, sy, n = (g[name] for name in HIT_LAYERS)
-        add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution),
-                 self.config.hit_cap if self.config.hit_cap > 0 else np.inf)
+        add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
 
     # ------------------------------------------------------------------ map uncertainty
     def _transfer_map_switch(self, pts: np.ndarray, pose: np.ndarray, h: np.ndarray | None = None) -> None:
@@ -625,50 +619,7 @@ class PoseEstimator:
             centre = pivot.mean(axis=0)
         region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre, sys.mean(axis=0),
                            sys.T @ sys / len(sys))
-        cov = self.region_covariance(region, pose)
-        if self.config.map_inconsistency_travel > 0:
-            rows = g[MAP_PLACEMENT_LAYER][cy, cx]
-            cov[:2, :2] += self._inconsistency(xy[ok], rows)
-        return cov, region
-
-    def _inconsistency(self, xy: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """2x2 covariance (m^2, map frame) of the disagreement between the old and the recent map under the
-        matched end points xy (n, 2): each group's Gauss-Newton shift onto its walls, their difference's outer
-        product less its noise (PSD part), in the directions both groups constrain."""
-        travel = self._placement_travel[rows]
-        fin = np.isfinite(travel)
-        old = fin & (self._travel - travel > self.config.map_inconsistency_travel)
-        new = fin & ~old
-        fld = self.field
-        sh = self.config.likelihood.sigma_hit
-        eps = 0.25 * fld.resolution
-        offs = np.array([[0.0, 0.0], [eps, 0.0], [-eps, 0.0], [0.0, eps], [0.0, -eps]])
-        vs = fld.wall_vectors((xy[None] + offs[:, None]).reshape(-1, 2)).reshape(5, -1, 2)
-        v = vs[0]
-        jac = np.stack([(vs[1] - vs[2]) / (2 * eps), (vs[3] - vs[4]) / (2 * eps)], axis=2)  # (n, 2, 2)
-        d = np.hypot(v[:, 0], v[:, 1])
-        inl = np.isfinite(d) & (d < sh) & np.all(np.isfinite(jac), axis=(1, 2))
-        shifts, covs, strong = [], [], []
-        for grp in (old & inl, new & inl):
-            if grp.sum() < 10:
-                return np.zeros((2, 2))
-            j, r = jac[grp], v[grp]
-            a = np.einsum("mki,mkj->ij", j, j)
-            b = np.einsum("mki,mk->i", j, r)
-            vals, vecs = np.linalg.eigh(a)
-            keep = vals >= 5.0
-            inv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
-            res = r + np.einsum("mki,i->mk", j, -inv @ b)
-            s2 = float(np.mean(np.sum(res ** 2, axis=1)))
-            shifts.append(-inv @ b)
-            covs.append(s2 * inv)
-            strong.append(vecs[:, keep] @ vecs[:, keep].T)
-        proj = strong[0] @ strong[1]
-        proj = 0.5 * (proj + proj.T)
-        dd = proj @ (shifts[0] - shifts[1])
-        c = np.outer(dd, dd) - proj @ (covs[0] + covs[1]) @ proj
-        vals, vecs = np.linalg.eigh(0.5 * (c + c.T))
-        return (vecs * np.maximum(vals, 0.0)) @ vecs.T
+        return self.region_covariance(region, pose), region
 
     def region_covariance(self, region: MapRegion, pose: np.ndarray, systematic: bool = True) -> np.ndarray:
         """3x3 covariance (x, y, yaw; map frame) a robot at base ``pose`` inherits from a map region's error
@@ -730,9 +681,6 @@ class PoseEstimator:
         if self._n_placements == len(self._placements):
             self._placements = np.concatenate([self._placements, np.empty_like(self._placements)])
         self._placements[self._n_placements] = model
-        if self._n_placements >= len(self._placement_travel):
-            self._placement_travel = np.concatenate([self._placement_travel, np.full(len(self._placement_travel), np.nan)])
-        self._placement_travel[self._n_placements] = self._travel
         self._n_placements += 1
         return self._n_placements - 1
 

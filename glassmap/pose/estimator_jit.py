@@ -34,14 +34,14 @@ def registration_sigmas(ranges: np.ndarray, sxy2: float, sth2: float, range_sigm
 
 @_jit
 def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray, ox: float, oy: float,
-             res: float, cap: float = np.inf) -> None:
+             res: float) -> None:
     """Add each end point's offset from its cell's corner (m, float32) to ``sx``, ``sy`` and 1 to ``count``
     ((h, w) float32 layers), in the order of the points."""
     h, w = count.shape
     for i in range(end.shape[0]):
         ix = np.int64(np.floor((end[i, 0] - ox) / res))
         iy = np.int64(np.floor((end[i, 1] - oy) / res))
-        if ix < 0 or ix >= w or iy < 0 or iy >= h or count[iy, ix] >= cap:
+        if ix < 0 or ix >= w or iy < 0 or iy >= h:
             continue
         sx[iy, ix] += np.float32(end[i, 0] - (ox + ix * res))
         sy[iy, ix] += np.float32(end[i, 1] - (oy + iy * res))
