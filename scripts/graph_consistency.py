@@ -1,0 +1,77 @@
+"""Consistency of the pose graph's online estimate against the front end's: every 10th key scan, the newest
+node's iSAM2 estimate and marginal covariance when it is added (what the back end knows at that moment), and
+the front end's estimate and reported covariance at the same scan, both against the truth
+(docs/loop-closure.md, "The back end's covariance").
+
+Usage: .venv/bin/python scripts/graph_consistency.py WORLD[,WORLD...] [--seed 0] [--route default]
+
+Prints per run the loop closures, and for the graph and the front end: mean NEES (x, y, yaw), the share of
+checks inside the 95 % bound, the NEES of the last check (the end of the route) and the rms position error.
+Use validation worlds (seeds 1000-1999) or built-in ones; on test worlds (seeds 0-99) it only reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.pose.estimator import EstimatorConfig
+from glassmap.pose.evaluate import CHI2_3DOF_95, run_estimator
+from glassmap.sim.dataset import simulate_run
+from glassmap.types import wrap_angle
+
+
+def _nees(err: np.ndarray, cov: np.ndarray) -> float:
+    e = err.copy()
+    e[2] = float(wrap_angle(e[2]))
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def _line(name: str, nees: list[float], err: list[float]) -> str:
+    n = np.array(nees)
+    return (f"{name}: mean NEES {n.mean():.2f}, inside 95 % {100 * np.mean(n < CHI2_3DOF_95):.0f} %, last {n[-1]:.1f}, "
+            f"error rms {100 * np.sqrt(np.mean(np.square(err))):.2f} cm")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("worlds")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--route", default="default", help="route name, or 'default'")
+    args = ap.parse_args()
+    cfg = EstimatorConfig()
+    for world in args.worlds.split(","):
+        run = simulate_run(world, None if args.route == "default" else args.route, seed=args.seed)
+        backend = GraphBackEnd(BackEndConfig(), cfg.likelihood.sigma_hit)
+        checks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (stamp, newest node's pose, map-frame cov)
+        add = backend.add
+
+        def add_and_check(key, add=add, backend=backend, checks=checks):
+            out = add(key)
+            n = len(backend)
+            if n % 10 == 0:
+                p = backend.poses()[-1]
+                c, s = np.cos(p[2]), np.sin(p[2])
+                rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # node frame -> map frame
+                checks.append((key.stamp, p.copy(), rot @ backend.graph.marginal(n - 1) @ rot.T))
+            return out
+
+        backend.add = add_and_check
+        traj, _ = run_estimator(run, cfg, backend=backend)
+        graph_nees, graph_err, front_nees, front_err = [], [], [], []
+        for stamp, pose, cov in checks:
+            k = min(int(np.searchsorted(traj.stamps, stamp)), len(traj.stamps) - 1)
+            truth = traj.truth[k]
+            graph_nees.append(_nees(pose - truth, cov))
+            graph_err.append(float(np.hypot(*(pose - truth)[:2])))
+            front_nees.append(_nees(traj.poses[k] - truth, traj.covs[k]))
+            front_err.append(float(np.hypot(*(traj.poses[k] - truth)[:2])))
+        print(f"{run.world_name} seed {run.seed}: {len(backend.closures)} closures; "
+              f"{_line('graph', graph_nees, graph_err)} | {_line('front end', front_nees, front_err)}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
