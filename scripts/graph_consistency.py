@@ -4,6 +4,7 @@ the front end's estimate and reported covariance at the same scan, both against 
 (docs/loop-closure.md, "The back end's covariance").
 
 Usage: .venv/bin/python scripts/graph_consistency.py WORLD[,WORLD...] [--seed 0] [--route default]
+           [--backend match_scale=0.05,min_sigma=0.001:0.001:0.0005]
 
 Prints per run the loop closures, and for the graph and the front end: mean NEES (x, y, yaw), the share of
 checks inside the 95 % bound, the NEES of the last check (the end of the route) and the rms position error.
@@ -13,6 +14,7 @@ Use validation worlds (seeds 1000-1999) or built-in ones; on test worlds (seeds 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
@@ -40,11 +42,18 @@ def main() -> int:
     ap.add_argument("worlds")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--route", default="default", help="route name, or 'default'")
+    ap.add_argument("--backend", default="", help="BackEndConfig overrides, e.g. match_scale=0.05,min_sigma=0.001:0.001:0.0005 (a tuple's values joined by ':')")
     args = ap.parse_args()
     cfg = EstimatorConfig()
+    backend_cfg = BackEndConfig()
+    for kv in filter(None, args.backend.split(",")):
+        k, v = kv.split("=")
+        cur = getattr(backend_cfg, k)
+        val = tuple(float(x) for x in v.split(":")) if isinstance(cur, tuple) else type(cur)(float(v))
+        backend_cfg = replace(backend_cfg, **{k: val})
     for world in args.worlds.split(","):
         run = simulate_run(world, None if args.route == "default" else args.route, seed=args.seed)
-        backend = GraphBackEnd(BackEndConfig(), cfg.likelihood.sigma_hit)
+        backend = GraphBackEnd(backend_cfg, cfg.likelihood.sigma_hit)
         checks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (stamp, newest node's pose, map-frame cov)
         add = backend.add
 
