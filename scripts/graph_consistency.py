@@ -1,6 +1,7 @@
-"""Consistency of the pose graph's online estimate against the front end's: every 10th key scan, the newest
-node's iSAM2 estimate and marginal covariance when it is added (what the back end knows at that moment), and
-the front end's estimate and reported covariance at the same scan, both against the truth
+"""Consistency of the pose graph's online estimate and covariance beside the front end's, against the truth.
+
+Every 10th key scan: the newest node's iSAM2 estimate and marginal covariance when it is added (what the back
+end knows at that moment), and the front end's estimate and reported covariance at the same scan
 (docs/loop-closure.md, "The back end's covariance").
 
 Usage: .venv/bin/python scripts/graph_consistency.py WORLD[,WORLD...] [--seed 0] [--route default]
@@ -39,7 +40,7 @@ def _line(name: str, nees: list[float], err: list[float]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("worlds")
+    ap.add_argument("worlds", help="comma-separated built-in world names or .toml world files")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--route", default="default", help="route name, or 'default'")
     ap.add_argument("--backend", default="", help="BackEndConfig overrides, e.g. match_scale=0.05,min_sigma=0.001:0.001:0.0005 (a tuple's values joined by ':')")
