@@ -202,10 +202,9 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
 
     lc = config is not None and config.mapping.loop_closure
     pipeline = config.pipeline if config is not None else PipelineConfig()
-    nice = pipeline.nice
     lines = [machine_reference() + f" ({beside})",
              f"load: {beside} (glassmap bench --load N); loop closure {'on' if lc else 'off'} "
-             f"(--mapping.loop_closure); processing thread niceness {nice} (--pipeline.nice)"]
+             f"(--mapping.loop_closure); processing thread niceness {pipeline.nice} (--pipeline.nice)"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     replay_config = config
