@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glassmap.types import PoseEstimate
 from runtime.app import Runtime, RunSummary
 from runtime.config import RuntimeConfig
 from runtime.evaluate import MapEvaluation, TrajectoryEvaluation, evaluate_map, evaluate_trajectory
@@ -65,6 +66,8 @@ class DemoResult:
     true_pose_at_stop: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     trajectory: TrajectoryEvaluation | None = None
     estimated_final_cov: np.ndarray | None = None  # its reported 3x3 covariance (m^2, rad^2)
+    corrected_final: PoseEstimate | None = None  # with loop closure: the same estimate corrected by the pose graph
+    closures: int = 0  # loop closures the pose graph had accepted by then
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
     stages: dict[str, list[float]] = field(default_factory=dict)
@@ -218,6 +221,8 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
         log.error("evaluation against the blueprint failed: %s", exc)
     est = rt.pose.pose if rt.pose is not None else None
     est_cov = rt.pose.covariance if rt.pose is not None else None
+    corrected = rt.latest.corrected_pose if rt.latest is not None else None
+    graph = getattr(rt.processor, "graph", None)
     trajectory = None
     true_final = np.full(3, np.nan)
     if truth_path.exists() and estimates:
@@ -228,22 +233,29 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
             true_final = at[-1, 1:].copy()
     return DemoResult(summary=summary, evaluation=evaluation, png=summary.exports.get("png", ""),
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
-                      estimated_final_cov=est_cov,
+                      estimated_final_cov=est_cov, corrected_final=corrected,
+                      closures=graph.closures if graph is not None else 0,
                       true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
                       route_done=driver.follower.done,  # type: ignore[attr-defined]
                       latency=list(rt.latency.latency), stages=dict(rt.latency.stages),
                       device_report=report)
 
 
-def final_sigmas(res: DemoResult) -> float | None:
-    """The final position error in units of the reported covariance: sqrt(e^T P_xy^-1 e) (None without an
-    estimate or with a non-finite true pose)."""
-    if res.estimated_final_pose is None or res.estimated_final_cov is None:
+def final_sigmas(res: DemoResult, corrected: bool = False) -> float | None:
+    """The final position error in units of the reported covariance: sqrt(e^T P_xy^-1 e), of the front end's
+    estimate or (``corrected``) of the pose graph's corrected one (None without that estimate or with a
+    non-finite true pose)."""
+    if corrected:
+        c = res.corrected_final
+        pose, cov = (None, None) if c is None else (c.pose, c.covariance)
+    else:
+        pose, cov = res.estimated_final_pose, res.estimated_final_cov
+    if pose is None or cov is None:
         return None
-    e = np.asarray(res.estimated_final_pose[:2]) - np.asarray(res.true_final_pose[:2])
+    e = np.asarray(pose[:2]) - np.asarray(res.true_final_pose[:2])
     if not np.all(np.isfinite(e)):
         return None
-    return float(np.sqrt(e @ np.linalg.solve(np.asarray(res.estimated_final_cov)[:2, :2], e)))
+    return float(np.sqrt(e @ np.linalg.solve(np.asarray(cov)[:2, :2], e)))
 
 
 def format_result(res: DemoResult) -> str:
@@ -259,6 +271,11 @@ def format_result(res: DemoResult) -> str:
         lines.append(f"final pose error in the reported covariance: {k:.1f} sigma (xy Mahalanobis; "
                      f"{'inside' if k <= 3 else 'OUTSIDE'} 3 sigma); pose track {s.pose_status or '?'}, "
                      f"{s.pose_gated} scan matches rejected, lost {s.pose_lost} times")
+    k = final_sigmas(res, corrected=True)
+    if k is not None:
+        e = 100 * float(np.hypot(*(res.corrected_final.pose[:2] - res.true_final_pose[:2])))
+        lines.append(f"corrected by the pose graph ({res.closures} loop closures): final error {e:.1f} cm, "
+                     f"{k:.1f} sigma ({'inside' if k <= 3 else 'OUTSIDE'} 3 sigma)")
     if res.latency:
         lat = np.asarray(res.latency) * 1e3
         lines.append(f"latency scan bytes in -> maps updated: p50 {np.percentile(lat, 50):.1f} ms, "

@@ -149,10 +149,11 @@ class GraphWorker:
             self._submitted += 1
         self._inbox.put(("key", compact(key)))
 
-    def correction(self) -> np.ndarray:
-        """(3,) the latest correction: compose(correction, front-end pose) = corrected pose."""
+    def latest_correction(self) -> tuple[np.ndarray, int]:
+        """(3,) the latest correction (compose(correction, front-end pose) = corrected pose) and the loop
+        closures accepted up to it."""
         with self._lock:
-            return self._correction.copy()
+            return self._correction.copy(), self.closures
 
     def snapshot(self) -> GraphSnapshot:
         with self._lock:

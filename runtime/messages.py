@@ -63,7 +63,7 @@ TOPICS: dict[str, str] = {
     "/cmd_vel": "geometry_msgs/msg/Twist",
     # with mapping.loop_closure: the pose corrected by the pose graph (per scan), the optimised key-scan
     # trajectory and the occupancy grid re-integrated at it (after each loop closure and at the end)
-    "/pose/corrected": "geometry_msgs/msg/PoseStamped",
+    "/pose/corrected": "geometry_msgs/msg/PoseWithCovarianceStamped",
     "/pose_graph/path": "nav_msgs/msg/Path",
     "/map/corrected": "nav_msgs/msg/OccupancyGrid",
     "/glass/map/corrected": "foxglove_msgs/msg/Grid",

@@ -48,7 +48,7 @@ class ScanResult:
     timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
     bytes_in_time: float | None = None  # host time the scan's last bytes arrived
     done_time: float = 0.0  # host time the maps were updated
-    corrected_pose: np.ndarray | None = None  # (3,) base pose corrected by the pose graph (mapping.loop_closure)
+    corrected_pose: PoseEstimate | None = None  # the estimate corrected by the pose graph (mapping.loop_closure)
 
 
 class ScanProcessor(Protocol):

@@ -67,6 +67,7 @@ class MappingProcessor:
             from runtime.graph_worker import GraphWorker
 
             self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
+            self._closure_sigma = BackEndConfig().closure.cov_floor
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)
@@ -121,9 +122,10 @@ class MappingProcessor:
         if self.graph is not None:
             if key and self.estimator.last_key_scan is not None:
                 self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
-            from glassmap.pose.motion import compose  # glassmap.pose is imported lazily in this module
+            from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
-            corrected = compose(self.graph.correction(), est.pose)
+            correction, closures = self.graph.latest_correction()
+            corrected = corrected_estimate(est, correction, closures, self._closure_sigma)
         self.scans += 1
         st = self.estimator.stats
         timings = {"pose": st.t_core, "likelihood_field": st.t_field, "occupancy": st.t_integrate,

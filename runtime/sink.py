@@ -82,7 +82,7 @@ class RecordingSink:
         ns = self.tb.ns(r.scan.stamp)
         self.rec.write("/pose", M.pose_with_covariance_msg(r.estimate, ns, self.map_frame), ns)
         if r.corrected_pose is not None:
-            self.rec.write("/pose/corrected", M.pose_stamped_msg(*r.corrected_pose, ns, self.map_frame), ns)
+            self.rec.write("/pose/corrected", M.pose_with_covariance_msg(r.corrected_pose, ns, self.map_frame), ns)
         if r.p_glass is not None:
             self.rec.write("/glass/beams", M.laser_scan_msg(r.scan, ns, self.laser_frame, values=r.p_glass), ns)
         if r.odom is not None:

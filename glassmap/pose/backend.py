@@ -32,6 +32,7 @@ from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
+from glassmap.types import PoseEstimate
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,23 @@ def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: 
     jb[2, 2] = 1.0
     out = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
     return 0.5 * (out + out.T)
+
+
+def corrected_estimate(est: PoseEstimate, correction: np.ndarray, closures: int,
+                       closure_sigma: tuple[float, float, float]) -> PoseEstimate:
+    """A front-end estimate (base pose, map frame) moved by the pose graph's ``correction``
+    (:meth:`GraphBackEnd.correction`), with its covariance there: the front end's, turned with the
+    correction, plus, once ``closures`` > 0, the closures' own uncertainty ``closure_sigma`` ((x, y, yaw)
+    standard deviations, m, m, rad; ``LoopClosureConfig.cov_floor``). The front end's covariance alone would
+    claim the accuracy of the map it matched, which the correction has moved by the closures; a closure
+    against a few metres of submap is itself about that far from the truth."""
+    c, s = np.cos(correction[2]), np.sin(correction[2])
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cov = rot @ np.asarray(est.covariance, dtype=np.float64) @ rot.T
+    if closures > 0:
+        cov = cov + np.diag(np.square(closure_sigma))
+    x, y, yaw = compose(correction, est.pose)
+    return PoseEstimate(est.stamp, float(x), float(y), float(yaw), 0.5 * (cov + cov.T), est.status)
 
 
 class GraphBackEnd:

@@ -8,8 +8,9 @@ import pytest
 
 from glassmap.mapping import MapperConfig
 from glassmap.grid import MapGrid
+from glassmap.pose.backend import corrected_estimate
 from glassmap.pose.corrected import NoClassifier, rebuild_maps, relative_sigma
-from glassmap.types import Scan
+from glassmap.types import PoseEstimate, Scan
 from tests.pose.test_loop_closure import GEOM, _keys, _ring, _route
 
 
@@ -69,3 +70,15 @@ def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
     assert to_map[0] < 0.04 and to_map[1] < 0.5 * anchor[1]
     with pytest.raises(ValueError, match="map"):
         online_sigma(est, e, r, "world")
+
+
+def test_corrected_estimate_turns_the_covariance_with_the_correction_and_adds_the_closures_sigma():
+    est = PoseEstimate(3.0, 1.0, 0.0, 0.1, np.diag([4e-4, 1e-4, 1e-6]), "degraded")
+    correction = np.array([1.0, 2.0, np.pi / 2])
+    c = corrected_estimate(est, correction, 0, (0.01, 0.01, 0.002))
+    np.testing.assert_allclose(c.pose, [1.0, 3.0, 0.1 + np.pi / 2], atol=1e-12)  # compose(correction, pose)
+    np.testing.assert_allclose(c.covariance, np.diag([1e-4, 4e-4, 1e-6]), atol=1e-15)  # x and y swap at 90 deg
+    assert (c.stamp, c.status) == (3.0, "degraded")
+    closed = corrected_estimate(est, correction, 2, (0.01, 0.01, 0.002))
+    np.testing.assert_allclose(closed.covariance, np.diag([2e-4, 5e-4, 5e-6]), atol=1e-15)
+    np.testing.assert_allclose(closed.pose, c.pose)

@@ -54,7 +54,9 @@ def test_worker_builds_the_same_graph_as_the_back_end_in_line_and_a_corrected_gr
     np.testing.assert_array_equal(snap.stamps, [k.stamp for k in keys])
     assert snap.grid is not None and snap.version == 1
     assert snap.grid.occupied().sum() > 100  # the ring's walls
-    np.testing.assert_allclose(w.correction(), inline.correction(), atol=1e-9)
+    correction, closures = w.latest_correction()
+    np.testing.assert_allclose(correction, inline.correction(), atol=1e-9)
+    assert closures == len(inline.closures)
 
 
 def test_sink_records_the_optimised_path_and_the_corrected_map(tmp_path):
@@ -73,13 +75,23 @@ def test_sink_records_the_optimised_path_and_the_corrected_map(tmp_path):
     assert grid.info.width == snap.grid.grid.shape[1] and (grid.data > 65).sum() > 100
 
 
-def test_processor_hands_key_scans_to_the_worker_and_reports_corrected_poses():
+def test_processor_hands_key_scans_to_the_worker_and_reports_corrected_poses(tmp_path):
     proc = MappingProcessor(MappingConfig(loop_closure=True, deskew=False))
+    tb = M.TimeBase(offset_ns=0)
+    rec = McapRecorder(tmp_path / "p.mcap")
+    sink = RecordingSink(rec, tb)
     try:
         for i in range(6):
             r = proc.process(make_scan(0.1 * i, seq=i), [make_odom(0.1 * i, x=0.06 * i)])
             assert r.corrected_pose is not None
-            np.testing.assert_allclose(r.corrected_pose, r.estimate.pose, atol=1e-9)  # no closure: no correction
+            # no closure: no correction, and the front end's covariance
+            np.testing.assert_allclose(r.corrected_pose.pose, r.estimate.pose, atol=1e-9)
+            np.testing.assert_allclose(r.corrected_pose.covariance, r.estimate.covariance, atol=1e-15)
+            sink.result(r)
+        rec.close()
+        got = [m for t, _, _, m in read_mcap(tmp_path / "p.mcap") if t == "/pose/corrected"]
+        assert len(got) == 6
+        np.testing.assert_allclose(M.cov3(got[-1].pose.covariance), r.corrected_pose.covariance, atol=1e-12)
         snap = proc.finish_graph()
         assert len(snap.stamps) == proc.estimator.stats.keyframes
         assert snap.glass is not None and snap.glass.grid is snap.grid.grid  # the glass map rebuilt too
