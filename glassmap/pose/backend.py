@@ -32,7 +32,7 @@ from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
-from glassmap.types import PoseEstimate
+from glassmap.types import PoseEstimate, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -51,13 +51,23 @@ class BackEndConfig:
 
 @dataclass(frozen=True)
 class Closure:
-    """An accepted loop closure: key scan ``node`` at ``pose`` (3,) in the frame of node ``anchor``."""
+    """An accepted loop closure: key scan ``node`` at ``pose`` (3,) in the frame of node ``anchor``; ``proj``
+    (3, 3) projects onto the directions it constrains (the identity where it constrains all three)."""
 
     anchor: int
     node: int
     pose: np.ndarray
     cov: np.ndarray
     stamp: float
+    proj: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def error(self, truth_anchor: np.ndarray, truth_node: np.ndarray) -> tuple[float, float]:
+        """(m, rad) the closure's error against the true poses of its two nodes, in the directions it
+        constrains."""
+        e = relative(truth_anchor, truth_node) - self.pose
+        e[2] = float(wrap_angle(e[2]))
+        e = self.proj @ e
+        return float(np.hypot(e[0], e[1])), abs(float(e[2]))
 
 
 def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
@@ -136,7 +146,7 @@ class GraphBackEnd:
         out = []
         for c in new:
             self.graph.add_loop(c.anchor, c.node, c.pose, c.cov)
-            out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp))
+            out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp, c.proj))
         if out:
             self.submaps.clear_cache()
         self.closures.extend(out)

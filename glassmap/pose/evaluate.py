@@ -22,7 +22,7 @@ from glassmap.pose.motion import compose, relative
 from glassmap.types import wrap_angle
 
 CHI2_3DOF_95 = 7.815
-FALSE_CLOSURE_XY = 0.05  # m: a loop closure further than this from the truth counts as false
+FALSE_CLOSURE_XY = 0.05  # m: a loop closure further than this from the truth (where it constrains) is false
 FALSE_CLOSURE_YAW = float(np.radians(1.0))
 
 
@@ -196,8 +196,7 @@ def _add_backend(traj: Trajectory, backend, run, key_scan: np.ndarray, last_key:
     truth = run.scan_true_poses[key_scan]
     err = np.zeros((len(backend.closures), 2))
     for n, c in enumerate(backend.closures):  # a handful per run
-        tr = relative(truth[c.anchor], truth[c.node])
-        err[n] = (np.hypot(tr[0] - c.pose[0], tr[1] - c.pose[1]), abs(float(wrap_angle(tr[2] - c.pose[2]))))
+        err[n] = c.error(truth[c.anchor], truth[c.node])
     traj.closure_truth_error = err
     traj.t_backend = np.asarray(t_back)
     traj.closure_checks = backend.closer.stats.checks

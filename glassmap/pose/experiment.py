@@ -219,15 +219,11 @@ def _ate(poses: np.ndarray, truth: np.ndarray) -> float:
 
 def _false_closures(closures, truth: np.ndarray) -> int:
     """How many accepted closures are further than FALSE_CLOSURE_XY / _YAW from the truth (key-scan poses
-    ``truth`` (N, 3))."""
-    from glassmap.pose.motion import relative
-    from glassmap.types import wrap_angle
-
+    ``truth`` (N, 3)) in the directions they constrain."""
     bad = 0
     for c in closures:
-        tr = relative(truth[c.anchor], truth[c.node])
-        bad += int(np.hypot(tr[0] - c.pose[0], tr[1] - c.pose[1]) > FALSE_CLOSURE_XY
-                   or abs(float(wrap_angle(tr[2] - c.pose[2]))) > FALSE_CLOSURE_YAW)
+        dxy, dyaw = c.error(truth[c.anchor], truth[c.node])
+        bad += int(dxy > FALSE_CLOSURE_XY or dyaw > FALSE_CLOSURE_YAW)
     return bad
 
 

@@ -10,9 +10,12 @@ the matcher's maximum.
 
 A match becomes a *candidate* when it is good on its own: at least ``min_overlap`` of its end points fall on
 cells the old submaps observed, and of those at least ``min_inliers`` lie on their walls (:func:`agreement`);
-the peak not on the window's border; all three directions constrained by at least
-``constrained_points`` end points (a corridor's long axis or a single wall is not); its covariance no
-wider than ``max_sigma_xy`` / ``max_sigma_yaw``. Glass and long corridors make wrong but good-looking
+the peak not on the window's border; at least ``min_directions`` directions of pose space constrained by
+at least ``constrained_points`` end points each (a corridor's long axis is not: there a closure constrains
+the sideways position and the heading only); its covariance in those directions no wider than
+``max_sigma_xy`` / ``max_sigma_yaw``. Along the directions it does not constrain, the closure's edge
+carries a standard deviation of ``free_sigma`` (m; rad for a pure heading direction): it corrects only what
+the scan observed. Glass and long corridors make wrong but good-looking
 matches likely, and a wrong closure is worse than none, so a candidate is *accepted* only when a second
 candidate from a different key scan (at least ``pair_min_travel`` m away, at most ``pair_max_travel``)
 agrees with it: the relative pose between the two scans implied by the two matches (through the graph
@@ -40,7 +43,7 @@ from glassmap.types import wrap_angle
 class LoopClosureConfig:
     """Candidate search, verification and edge settings (lengths m, angles rad); see the module docstring.
     cov_floor: (x, y, yaw) standard deviations added to a closure's match covariance (the submap's own
-    error)."""
+    error). min_directions: 3 closes only where the scan constrains the whole pose; 2 also in corridors."""
 
     check_every: int = 4
     min_travel: float = 20.0
@@ -53,6 +56,8 @@ class LoopClosureConfig:
     min_overlap: float = 0.3
     min_inliers: float = 0.7
     constrained_points: float = 10.0
+    min_directions: int = 2
+    free_sigma: float = 1.0
     max_sigma_xy: float = 0.03
     max_sigma_yaw: float = float(np.radians(0.5))
     pair_min_travel: float = 0.3
@@ -63,11 +68,17 @@ class LoopClosureConfig:
     matcher: MatcherConfig = field(default_factory=lambda: MatcherConfig(
         xy_window_max=1.0, yaw_window_max=float(np.radians(8.0)), max_points=300, min_quality=0.0))
 
+    def __post_init__(self) -> None:
+        if self.min_directions not in (1, 2, 3):
+            raise ValueError(f"min_directions must be 1, 2 or 3 (constrained directions of x, y, yaw), "
+                             f"got {self.min_directions}")
+
 
 @dataclass(frozen=True)
 class Candidate:
     """A verified-on-its-own match of key scan ``node`` (path length ``travel`` m, front-end pose
-    ``frontend``) against ``submap``: ``pose`` (3,) the node in the submap's anchor frame, ``cov`` (3, 3)."""
+    ``frontend``) against ``submap``: ``pose`` (3,) the node in the submap's anchor frame, ``cov`` (3, 3);
+    ``proj`` (3, 3) projects pose space (that frame) onto the directions the match constrains."""
 
     node: int
     travel: float
@@ -77,6 +88,7 @@ class Candidate:
     pose: np.ndarray
     cov: np.ndarray
     inliers: float
+    proj: np.ndarray = field(default_factory=lambda: np.eye(3))
 
 
 @dataclass
@@ -111,6 +123,14 @@ def agreement(fld: LikelihoodField, occ: OccupancyGrid, pts: np.ndarray, pose: n
         return 0.0, 0.0
     inl = fld.log_likelihood(xy[known]) > np.log(np.exp(-2.0) + p_floor)
     return float(known.mean()), float(inl.mean())
+
+
+def _projector(h: np.ndarray) -> np.ndarray:
+    """(3, 3) projection of pose space onto the directions ``h`` (rows, from :func:`constrained_directions`)
+    along the others (the identity when all three are constrained)."""
+    if h.shape[0] == 3:
+        return np.eye(3)
+    return h.T @ np.linalg.solve(h @ h.T, h)
 
 
 class LoopCloser:
@@ -171,25 +191,41 @@ class LoopCloser:
             return "small overlap"
         if inliers < cfg.min_inliers:
             return "few inliers"
-        if constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points).shape[0] < 3:
+        h = constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points)
+        if h.shape[0] < cfg.min_directions:
             return "unconstrained direction"
-        ev = np.linalg.eigvalsh(res.covariance[:2, :2])
-        if np.sqrt(max(ev.max(), 0.0)) > cfg.max_sigma_xy or np.sqrt(max(res.covariance[2, 2], 0.0)) > cfg.max_sigma_yaw:
+        proj = _projector(h)
+        cov = proj @ res.covariance @ proj.T
+        ev = np.linalg.eigvalsh(cov[:2, :2])
+        if np.sqrt(max(ev.max(), 0.0)) > cfg.max_sigma_xy or np.sqrt(max(cov[2, 2], 0.0)) > cfg.max_sigma_yaw:
             return "wide covariance"
         return ""
 
-    def agree(self, a: Candidate, b: Candidate, poses: np.ndarray) -> bool:
-        """Whether two candidates imply the same relative pose between their scans as the front end does."""
+    def edge_covariance(self, res: MatchResult, proj: np.ndarray) -> np.ndarray:
+        """Covariance (3, 3; x, y, yaw in the submap's anchor frame) of a closure's edge: the match's in the
+        directions it constrains (``proj``, see :func:`_projector`) plus ``cov_floor``, and ``free_sigma``
+        along the others."""
         cfg = self.config
-        pa = a.pose
-        pb = b.pose
+        free = np.eye(3) - proj
+        cov = proj @ res.covariance @ proj.T + cfg.free_sigma ** 2 * free @ free.T + np.diag(np.square(cfg.cov_floor))
+        return 0.5 * (cov + cov.T)
+
+    def agree(self, a: Candidate, b: Candidate, poses: np.ndarray) -> bool:
+        """Whether two candidates imply the same relative pose between their scans as the front end does, in
+        the directions both matches constrain: b's match against where a's match and the front end's
+        relative pose put it."""
+        cfg = self.config
+        pb, proj_b = b.pose, b.proj
         if a.submap != b.submap:  # bring b into a's submap frame through the graph
-            pb = compose(relative(poses[a.anchor], poses[b.anchor]), pb)
-        implied = relative(pa, pb)
-        front = relative(a.frontend, b.frontend)
-        dxy = float(np.hypot(implied[0] - front[0], implied[1] - front[1]))
-        dyaw = abs(float(wrap_angle(implied[2] - front[2])))
-        return dxy <= cfg.pair_xy and dyaw <= cfg.pair_yaw
+            link = relative(poses[a.anchor], poses[b.anchor])
+            pb = compose(link, pb)
+            c, s = np.cos(link[2]), np.sin(link[2])
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            proj_b = rot @ proj_b @ rot.T
+        d = pb - compose(a.pose, relative(a.frontend, b.frontend))
+        d[2] = float(wrap_angle(d[2]))
+        d = proj_b @ (a.proj @ d)
+        return float(np.hypot(d[0], d[1])) <= cfg.pair_xy and abs(float(d[2])) <= cfg.pair_yaw
 
     def check(self, store: SubmapStore, poses: np.ndarray, node: int, key: KeyScan, travel: float
               ) -> list[Candidate]:
@@ -208,9 +244,9 @@ class LoopCloser:
             self.stats.reject(why)
             return []
         self.stats.candidates += 1
+        proj = _projector(constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points))
         cand = Candidate(node, travel, np.asarray(key.pose, dtype=np.float64), sm.index, sm.anchor,
-                         np.asarray(res.pose, dtype=np.float64), res.covariance + np.diag(np.square(cfg.cov_floor)),
-                         inliers)
+                         np.asarray(res.pose, dtype=np.float64), self.edge_covariance(res, proj), inliers, proj)
         last = self._last_accepted
         if last is not None and cand.travel - last.travel <= cfg.pair_max_travel:
             if self.agree(last, cand, poses):
