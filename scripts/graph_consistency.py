@@ -7,11 +7,12 @@ and the corrected estimate the runtime reports with loop closure on (``corrected
 latest correction, closure sigma added once a closure was accepted).
 
 Usage: .venv/bin/python scripts/graph_consistency.py WORLD[,WORLD...] [--seed 0] [--route default]
-           [--backend match_scale=0.05,min_sigma=0.001:0.001:0.0005]
+           [--backend match_scale=0.05,min_sigma=0.001:0.001:0.0005] [--closures]
 
 Prints per run the loop closures, and for the graph, the front end and the corrected estimate: mean NEES
 (x, y, yaw), the share of checks inside the 95 % bound, the NEES of the last check (the end of the route) and
-the rms position error.
+the rms position error; with ``--closures`` also each accepted closure's error against the truth (whole,
+and in the directions it constrains).
 Use validation worlds (seeds 1000-1999) or built-in ones; on test worlds (seeds 0-99) it only reports.
 """
 
@@ -25,6 +26,7 @@ import numpy as np
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd, corrected_estimate
 from glassmap.pose.estimator import EstimatorConfig
 from glassmap.pose.evaluate import CHI2_3DOF_95, run_estimator
+from glassmap.pose.motion import relative
 from glassmap.sim.dataset import simulate_run
 from glassmap.types import PoseEstimate, wrap_angle
 
@@ -46,6 +48,7 @@ def main() -> int:
     ap.add_argument("worlds", help="comma-separated built-in world names or .toml world files")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--route", default="default", help="route name, or 'default'")
+    ap.add_argument("--closures", action="store_true", help="print each accepted closure's error against the truth")
     ap.add_argument("--backend", default="", help="BackEndConfig overrides, e.g. match_scale=0.05,min_sigma=0.001:0.001:0.0005 (a tuple's values joined by ':')")
     args = ap.parse_args()
     cfg = EstimatorConfig()
@@ -102,6 +105,16 @@ def main() -> int:
               f"{_line('graph', graph_nees, graph_err)} | {_line('front end', front_nees, front_err)}\n"
               f"  every 40th scan: {_line('front end', front2_nees, front2_err)} | "
               f"{_line('corrected', corr_nees, corr_err)}", flush=True)
+        if args.closures:
+            nodes = np.minimum(np.searchsorted(traj.stamps, [k.stamp for k in backend.keys]), len(traj.stamps) - 1)
+            truth = traj.truth[nodes]
+            for c in backend.closures:
+                e = relative(truth[c.anchor], truth[c.node]) - c.pose
+                dxy, dyaw = c.error(truth[c.anchor], truth[c.node])
+                kind = "all three" if np.allclose(c.proj, np.eye(3)) else "partial"
+                print(f"  closure {c.anchor} -> {c.node} ({kind}): error {100 * np.hypot(e[0], e[1]):.2f} cm, "
+                      f"{np.degrees(float(wrap_angle(e[2]))):+.3f} deg; in the directions it constrains "
+                      f"{100 * dxy:.2f} cm, {np.degrees(dyaw):.3f} deg")
     return 0
 
 

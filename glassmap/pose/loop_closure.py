@@ -14,8 +14,8 @@ the peak not on the window's border; at least ``min_directions`` directions of p
 at least ``constrained_points`` end points each (a corridor's long axis is not: there a closure constrains
 the sideways position and the heading only); its covariance in those directions no wider than
 ``max_sigma_xy`` / ``max_sigma_yaw``. Along the directions it does not constrain, the closure's edge
-carries a standard deviation of ``free_sigma`` (m; rad for a pure heading direction): it corrects only what
-the scan observed. Glass and long corridors make wrong but good-looking
+carries a standard deviation of ``free_sigma`` (m; rad for a pure heading direction) and the graph's own relative pose
+(the match's prior) as its value: it corrects only what the scan observed. Glass and long corridors make wrong but good-looking
 matches likely, and a wrong closure is worse than none, so a candidate is *accepted* only when a second
 candidate from a different key scan (at least ``pair_min_travel`` m away, at most ``pair_max_travel``)
 agrees with it: the relative pose between the two scans implied by the two matches (through the graph
@@ -245,8 +245,14 @@ class LoopCloser:
             return []
         self.stats.candidates += 1
         proj = _projector(constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points))
-        cand = Candidate(node, travel, np.asarray(key.pose, dtype=np.float64), sm.index, sm.anchor,
-                         np.asarray(res.pose, dtype=np.float64), self.edge_covariance(res, proj), inliers, proj)
+        # the match's pose only in the directions it observes; along the others the prior (the graph's own
+        # relative pose), so that the closure does not pull along what the scan did not see
+        step = np.asarray(res.pose, dtype=np.float64) - prior
+        step[2] = float(wrap_angle(step[2]))
+        pose = prior + proj @ step
+        pose[2] = float(wrap_angle(pose[2]))
+        cand = Candidate(node, travel, np.asarray(key.pose, dtype=np.float64), sm.index, sm.anchor, pose,
+                         self.edge_covariance(res, proj), inliers, proj)
         last = self._last_accepted
         if last is not None and cand.travel - last.travel <= cfg.pair_max_travel:
             if self.agree(last, cand, poses):
