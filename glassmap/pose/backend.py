@@ -30,7 +30,7 @@ from glassmap.mapping import GlassMapper, MapperConfig
 from glassmap.pose.corrected import rebuild_maps
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
-from glassmap.pose.motion import MotionNoise, compose, relative
+from glassmap.pose.motion import MotionNoise, compose, compose_jacobians, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.types import PoseEstimate, wrap_angle
 
@@ -95,9 +95,8 @@ def corrected_estimate(est: PoseEstimate, correction: np.ndarray, closures: int,
     standard deviations, m, m, rad; ``LoopClosureConfig.cov_floor``). The front end's covariance alone would
     claim the accuracy of the map it matched, which the correction has moved by the closures; a closure
     against a few metres of submap is itself about that far from the truth."""
-    c, s = np.cos(correction[2]), np.sin(correction[2])
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    cov = rot @ np.asarray(est.covariance, dtype=np.float64) @ rot.T
+    _, turn = compose_jacobians(correction, est.pose)
+    cov = turn @ np.asarray(est.covariance, dtype=np.float64) @ turn.T
     if closures > 0:
         cov = cov + np.diag(np.square(closure_sigma))
     x, y, yaw = compose(correction, est.pose)

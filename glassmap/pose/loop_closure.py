@@ -14,14 +14,15 @@ the peak not on the window's border; at least ``min_directions`` directions of p
 at least ``constrained_points`` end points each (a corridor's long axis is not: there a closure constrains
 the sideways position and the heading only); its covariance in those directions no wider than
 ``max_sigma_xy`` / ``max_sigma_yaw``. Along the directions it does not constrain, the closure's edge
-carries a standard deviation of ``free_sigma`` (m; rad for a pure heading direction) and the graph's own relative pose
-(the match's prior) as its value: it corrects only what the scan observed. Glass and long corridors make wrong but good-looking
-matches likely, and a wrong closure is worse than none, so a candidate is *accepted* only when a second
-candidate from a different key scan (at least ``pair_min_travel`` m away, at most ``pair_max_travel``)
-agrees with it: the relative pose between the two scans implied by the two matches (through the graph
-between the two submaps' anchors, if they differ) equals the front end's (locally exact) relative pose
-within ``pair_xy`` / ``pair_yaw``. After a pair is accepted, each new candidate must agree in the same way
-with the last accepted closure.
+carries a standard deviation of ``free_sigma`` (m; rad for a pure heading direction) and the graph's own
+relative pose (the match's prior) as its value: it corrects only what the scan observed. Glass and long
+corridors make wrong but good-looking matches likely, and a wrong closure is worse than none, so a
+candidate is *accepted* only when a second candidate from a different key scan (at least
+``pair_min_travel`` m away, at most ``pair_max_travel``) agrees with it: the relative pose between the two
+scans implied by the two matches (through the graph between the two submaps' anchors, if they differ)
+equals the front end's (locally exact) relative pose within ``pair_xy`` / ``pair_yaw`` in the directions
+both matches constrain. After a pair is accepted, each new candidate must agree in the same way with the
+last accepted closure.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from glassmap.grid import OccupancyGrid
 from glassmap.pose.field import LikelihoodField
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions, select_points
-from glassmap.pose.motion import compose, relative
+from glassmap.pose.motion import compose, compose_jacobians, relative
 from glassmap.pose.submaps import Submap, SubmapStore
 from glassmap.types import wrap_angle
 
@@ -218,10 +219,9 @@ class LoopCloser:
         pb, proj_b = b.pose, b.proj
         if a.submap != b.submap:  # bring b into a's submap frame through the graph
             link = relative(poses[a.anchor], poses[b.anchor])
+            _, turn = compose_jacobians(link, pb)
             pb = compose(link, pb)
-            c, s = np.cos(link[2]), np.sin(link[2])
-            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            proj_b = rot @ proj_b @ rot.T
+            proj_b = turn @ proj_b @ turn.T
         d = pb - compose(a.pose, relative(a.frontend, b.frontend))
         d[2] = float(wrap_angle(d[2]))
         d = proj_b @ (a.proj @ d)
