@@ -45,7 +45,6 @@ class BackEndConfig:
     match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
     loop_closure: bool = True
-    closure_sharing: bool = True  # experiment: the k-th closure against one anchor gets k times its covariance
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
 
@@ -145,11 +144,8 @@ class GraphBackEnd:
         new = self.closer.check(self.submaps, self.graph.poses, node, key, self.travel[-1])
         out = []
         for c in new:
-            cov = c.cov
-            if self.config.closure_sharing:
-                cov = cov * (1 + sum(1 for d in self.closures + out if d.anchor == c.anchor))
-            self.graph.add_loop(c.anchor, c.node, c.pose, cov)
-            out.append(Closure(c.anchor, c.node, c.pose, cov, self.keys[c.node].stamp, c.proj))
+            self.graph.add_loop(c.anchor, c.node, c.pose, c.cov)
+            out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp, c.proj))
         if out:
             self.submaps.clear_cache()
         self.closures.extend(out)
