@@ -66,8 +66,9 @@ class MappingProcessor:
             from glassmap.pose.backend import BackEndConfig
             from runtime.graph_worker import GraphWorker
 
-            self.graph = GraphWorker(BackEndConfig(), ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
-            self._closure_sigma = BackEndConfig().closure.cov_floor
+            backend = BackEndConfig()
+            self.graph = GraphWorker(backend, ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
+            self._closure_sigma = backend.closure.cov_floor
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)

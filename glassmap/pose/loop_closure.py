@@ -181,26 +181,27 @@ class LoopCloser:
         overlap, inliers = agreement(fld, occ, pts, res.pose, fld.params.p_floor)
         return res, overlap, inliers
 
-    def single_check(self, res: MatchResult | None, overlap: float, inliers: float) -> str:
-        """'' if ``res`` passes the single-match tests, else the reason it fails."""
+    def single_check(self, res: MatchResult | None, overlap: float, inliers: float) -> tuple[str, np.ndarray]:
+        """('', the projector onto the directions the match constrains, see :func:`_projector`) if ``res``
+        passes the single-match tests, else (the reason it fails, that projector or the identity)."""
         cfg = self.config
         if res is None:
-            return "no match"
+            return "no match", np.eye(3)
         if res.edge:
-            return "peak on the window border"
+            return "peak on the window border", np.eye(3)
         if overlap < cfg.min_overlap:
-            return "small overlap"
+            return "small overlap", np.eye(3)
         if inliers < cfg.min_inliers:
-            return "few inliers"
+            return "few inliers", np.eye(3)
         h = constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points)
         if h.shape[0] < cfg.min_directions:
-            return "unconstrained direction"
+            return "unconstrained direction", np.eye(3)
         proj = _projector(h)
         cov = proj @ res.covariance @ proj.T
         ev = np.linalg.eigvalsh(cov[:2, :2])
         if np.sqrt(max(ev.max(), 0.0)) > cfg.max_sigma_xy or np.sqrt(max(cov[2, 2], 0.0)) > cfg.max_sigma_yaw:
-            return "wide covariance"
-        return ""
+            return "wide covariance", proj
+        return "", proj
 
     def edge_covariance(self, res: MatchResult, proj: np.ndarray) -> np.ndarray:
         """Covariance (3, 3; x, y, yaw in the submap's anchor frame) of a closure's edge: the match's in the
@@ -239,12 +240,11 @@ class LoopCloser:
         self.stats.checks += 1
         prior = relative(poses[sm.anchor], poses[node])
         res, overlap, inliers = self.match(store, group, poses, key, prior, travel)
-        why = self.single_check(res, overlap, inliers)
+        why, proj = self.single_check(res, overlap, inliers)
         if why:
             self.stats.reject(why)
             return []
         self.stats.candidates += 1
-        proj = _projector(constrained_directions(res.information, res.lever, self.sigma_hit, cfg.constrained_points))
         # the match's pose only in the directions it observes; along the others the prior (the graph's own
         # relative pose), so that the closure does not pull along what the scan did not see
         step = np.asarray(res.pose, dtype=np.float64) - prior
