@@ -143,10 +143,8 @@ class GraphBackEnd:
             return []
         new = self.closer.check(self.submaps, self.graph.poses, node, key, self.travel[-1])
         out = []
-        cc = self.config.closure
-        lean = np.diag(np.square(cc.cov_floor)) if cc.shared_floor else None
         for c in new:
-            self.graph.add_loop(c.anchor, c.node, c.pose, c.cov, lean)
+            self.graph.add_loop(c.anchor, c.node, c.pose, c.cov)
             out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp, c.proj))
         if out:
             self.submaps.clear_cache()

@@ -63,7 +63,6 @@ class PoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.edges: list[Edge] = []
-        self._leans: set[int] = set()  # nodes with a lean node (add_loop's ``lean``)
         self._poses = np.asarray(first_pose, dtype=np.float64).reshape(1, 3).copy()
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._poses[0]), _noise(first_cov)))
@@ -103,30 +102,17 @@ class PoseGraph:
             self._new_factors = gtsam.NonlinearFactorGraph()
             self._new_values = gtsam.Values()
 
-    def add_loop(self, a: int, b: int, rel: np.ndarray, cov: np.ndarray, lean: np.ndarray | None = None) -> None:
-        """Add a loop-closure edge (node b at ``rel`` in node a's frame, covariance ``cov``) and re-solve.
-
-        lean: covariance (3, 3) of an error that every closure against node a shares (the error of the submap
-        anchored there). The edge then starts from a's *lean node*, a pose tied to a by a zero relative pose
-        of that covariance (added with a's first closure), so that many closures against one submap do not
-        count its error as independent measurements."""
+    def add_loop(self, a: int, b: int, rel: np.ndarray, cov: np.ndarray) -> None:
+        """Add a loop-closure edge (node b at ``rel`` in node a's frame, covariance ``cov``) and re-solve."""
         n = len(self)
         if not (0 <= a < n and 0 <= b < n) or a == b:
             raise PoseGraphError(f"loop edge {a} -> {b} needs two different existing nodes (0..{n - 1})")
         rel = np.asarray(rel, dtype=np.float64)
         self._flush()
         g = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        src = a
-        if lean is not None:
-            src = gtsam.symbol("l", a)
-            if a not in self._leans:
-                self._leans.add(a)
-                g.add(gtsam.BetweenFactorPose2(a, src, gtsam.Pose2(), _noise(np.asarray(lean, dtype=np.float64))))
-                values.insert(src, gtsam.Pose2(*self._poses[a]))
-        g.add(gtsam.BetweenFactorPose2(src, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
+        g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
         self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "loop"))
-        self._isam.update(g, values)
+        self._isam.update(g, gtsam.Values())
         for _ in range(self.loop_iterations):
             self._isam.update()
         self._read()

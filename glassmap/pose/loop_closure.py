@@ -43,9 +43,8 @@ from glassmap.types import wrap_angle
 @dataclass(frozen=True)
 class LoopClosureConfig:
     """Candidate search, verification and edge settings (lengths m, angles rad); see the module docstring.
-    cov_floor: (x, y, yaw) standard deviations of the submap's own error, added to a closure's match
-    covariance, or with shared_floor shared by all closures against one submap (``PoseGraph.add_loop``'s
-    lean). min_directions: 3 closes only where the scan constrains the whole pose; 2 also in corridors."""
+    cov_floor: (x, y, yaw) standard deviations added to a closure's match covariance (the submap's own
+    error). min_directions: 3 closes only where the scan constrains the whole pose; 2 also in corridors."""
 
     check_every: int = 4
     min_travel: float = 20.0
@@ -67,7 +66,6 @@ class LoopClosureConfig:
     pair_xy: float = 0.03
     pair_yaw: float = float(np.radians(0.5))
     cov_floor: tuple[float, float, float] = (0.01, 0.01, float(np.radians(0.2)))
-    shared_floor: bool = True
     matcher: MatcherConfig = field(default_factory=lambda: MatcherConfig(
         xy_window_max=1.0, yaw_window_max=float(np.radians(8.0)), max_points=300, min_quality=0.0))
 
@@ -207,13 +205,11 @@ class LoopCloser:
 
     def edge_covariance(self, res: MatchResult, proj: np.ndarray) -> np.ndarray:
         """Covariance (3, 3; x, y, yaw in the submap's anchor frame) of a closure's edge: the match's in the
-        directions it constrains (``proj``, see :func:`_projector`), ``free_sigma`` along the others, plus
-        ``cov_floor`` unless ``shared_floor`` (then the graph adds it once per submap)."""
+        directions it constrains (``proj``, see :func:`_projector`) plus ``cov_floor``, and ``free_sigma``
+        along the others."""
         cfg = self.config
         free = np.eye(3) - proj
-        cov = proj @ res.covariance @ proj.T + cfg.free_sigma ** 2 * free @ free.T
-        if not cfg.shared_floor:
-            cov = cov + np.diag(np.square(cfg.cov_floor))
+        cov = proj @ res.covariance @ proj.T + cfg.free_sigma ** 2 * free @ free.T + np.diag(np.square(cfg.cov_floor))
         return 0.5 * (cov + cov.T)
 
     def agree(self, a: Candidate, b: Candidate, poses: np.ndarray) -> bool:
