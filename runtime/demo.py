@@ -25,7 +25,8 @@ import numpy as np
 from glassmap.types import PoseEstimate
 from runtime.app import Runtime, RunSummary
 from runtime.config import RuntimeConfig
-from runtime.evaluate import MapEvaluation, TrajectoryEvaluation, evaluate_map, evaluate_trajectory
+from runtime.evaluate import (GraphEvaluation, MapEvaluation, TrajectoryEvaluation, evaluate_graph, evaluate_map,
+                              evaluate_trajectory)
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,7 @@ class DemoResult:
     estimated_final_cov: np.ndarray | None = None  # its reported 3x3 covariance (m^2, rad^2)
     corrected_final: PoseEstimate | None = None  # with loop closure: the same estimate corrected by the pose graph
     closures: int = 0  # loop closures the pose graph had accepted by then
+    graph: GraphEvaluation | None = None  # with loop closure: the final optimised key scans and closures scored
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
     stages: dict[str, list[float]] = field(default_factory=dict)
@@ -149,11 +151,13 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     devices = await DeviceProcess.start(opts.world, opts.speed, opts.seed, seen_path=str(seen_path),
                                         truth_path=str(truth_path))
     estimates: list[tuple[float, float, float, float]] = []  # per processed scan: stamp (ms, 24-bit), x, y, yaw
+    truth_keys: dict[float, float] = {}  # scan stamp (host s) -> that stamp key, for the pose graph's key scans
 
     def on_result(r) -> None:
         if r.estimate is not None and r.scan.sensor_stamp is not None:
-            estimates.append((float(round(r.scan.sensor_stamp * 1000) % (1 << 24)), r.estimate.x, r.estimate.y,
-                              r.estimate.yaw))
+            key = float(round(r.scan.sensor_stamp * 1000) % (1 << 24))
+            estimates.append((key, r.estimate.x, r.estimate.y, r.estimate.yaw))
+            truth_keys[r.scan.stamp] = key
 
     report: dict = {}
     try:
@@ -223,7 +227,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     est_cov = rt.pose.covariance if rt.pose is not None else None
     corrected = rt.latest.corrected_pose if rt.latest is not None else None
     graph = getattr(rt.processor, "graph", None)
-    trajectory = None
+    trajectory = graph_eval = None
     true_final = np.full(3, np.nan)
     if truth_path.exists() and estimates:
         truth = np.load(truth_path)
@@ -231,10 +235,14 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
         at = truth[truth[:, 0] == estimates[-1][0]]
         if len(at):
             true_final = at[-1, 1:].copy()
+        if graph is not None:
+            snap = graph.snapshot()
+            keys = np.array([truth_keys.get(float(t), np.nan) for t in snap.stamps])
+            graph_eval = evaluate_graph(keys, snap.poses, snap.accepted, truth)
     return DemoResult(summary=summary, evaluation=evaluation, png=summary.exports.get("png", ""),
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
                       estimated_final_cov=est_cov, corrected_final=corrected,
-                      closures=graph.closures if graph is not None else 0,
+                      closures=graph.closures if graph is not None else 0, graph=graph_eval,
                       true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
                       route_done=driver.follower.done,  # type: ignore[attr-defined]
                       latency=list(rt.latency.latency), stages=dict(rt.latency.stages),
@@ -276,6 +284,8 @@ def format_result(res: DemoResult) -> str:
         e = 100 * float(np.hypot(*(res.corrected_final.pose[:2] - res.true_final_pose[:2])))
         lines.append(f"corrected by the pose graph ({res.closures} loop closures): final error {e:.1f} cm, "
                      f"{k:.1f} sigma ({'inside' if k <= 3 else 'OUTSIDE'} 3 sigma)")
+    if res.graph is not None:
+        lines.append(res.graph.describe())
     if res.latency:
         lat = np.asarray(res.latency) * 1e3
         lines.append(f"latency scan bytes in -> maps updated: p50 {np.percentile(lat, 50):.1f} ms, "

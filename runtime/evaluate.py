@@ -157,3 +157,49 @@ def evaluate_trajectory(estimates: np.ndarray, truth: np.ndarray) -> TrajectoryE
     return TrajectoryEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), max_error=float(d.max()),
                                 yaw_rms=float(np.sqrt(np.mean(dyaw ** 2))), final_error=float(d[-1]),
                                 final_true=t[-1, 1:].copy(), final_estimate=e[-1, 1:].copy())
+
+
+@dataclass(frozen=True)
+class GraphEvaluation:
+    """The pose graph's result against the truth (runtime demo with loop closure): ate (m), the RMS position
+    error of the optimised key-scan poses over the n key scans matched to a true pose; closures scored (both
+    nodes matched), false: those more than ``FALSE_CLOSURE_XY`` / ``FALSE_CLOSURE_YAW`` off the truth in the
+    directions they constrain (:meth:`glassmap.pose.backend.Closure.error`), worst_xy / worst_yaw (m, rad):
+    the largest closure errors."""
+
+    n: int
+    ate: float
+    closures: int
+    false: int
+    worst_xy: float
+    worst_yaw: float
+
+    def describe(self) -> str:
+        return (f"optimised key-scan trajectory: ATE (RMS) {100 * self.ate:.1f} cm over {self.n} key scans; "
+                f"{self.closures} loop closures scored against the truth, {self.false} false (worst "
+                f"{100 * self.worst_xy:.1f} cm, {np.degrees(self.worst_yaw):.2f} deg where they constrain)")
+
+
+def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndarray) -> GraphEvaluation | None:
+    """Score the optimised key-scan ``poses`` (N, 3) and the ``accepted`` closures (their nodes index the
+    key scans) against ``truth`` (m, 4: stamp key, x, y, yaw, as in :func:`evaluate_trajectory`); ``keys``
+    (N,) are the key scans' stamp keys in the same unit (NaN where unknown). None if no key scan matches."""
+    from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW
+
+    tru = np.asarray(truth, np.float64).reshape(-1, 4)
+    keys = np.asarray(keys, np.float64)
+    if not len(tru) or not len(keys):
+        return None
+    order = np.argsort(tru[:, 0], kind="stable")
+    k = np.clip(np.searchsorted(tru[order, 0], keys), 0, len(tru) - 1)
+    hit = tru[order[k], 0] == keys
+    if not hit.any():
+        return None
+    at = tru[order[k], 1:]
+    d = np.hypot(*(np.asarray(poses)[hit, :2] - at[hit, :2]).T)
+    errs = np.array([c.error(at[c.anchor], at[c.node]) for c in accepted if hit[c.anchor] and hit[c.node]])
+    errs = errs.reshape(-1, 2)
+    false = int(np.sum((errs[:, 0] > FALSE_CLOSURE_XY) | (errs[:, 1] > FALSE_CLOSURE_YAW)))
+    worst = errs.max(axis=0) if len(errs) else np.zeros(2)
+    return GraphEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), closures=len(errs), false=false,
+                           worst_xy=float(worst[0]), worst_yaw=float(worst[1]))

@@ -53,8 +53,9 @@ class GraphSnapshot:
     """What the worker has published: stamps (N,) s and poses (N, 3) of the optimised key scans (map
     frame), the number of accepted loop closures, the corrected occupancy grid and glass map (a
     :class:`~glassmap.mapping.MapCopy` on the same grid; None before the first closure or
-    :meth:`GraphWorker.finish`; the glass map also without a mapper config), and ``version`` (incremented
-    on every new corrected map)."""
+    :meth:`GraphWorker.finish`; the glass map also without a mapper config), ``version`` (incremented
+    on every new corrected map) and the accepted closures themselves (:class:`~glassmap.pose.backend.Closure`,
+    nodes indexing ``stamps``)."""
 
     stamps: np.ndarray
     poses: np.ndarray
@@ -62,6 +63,7 @@ class GraphSnapshot:
     grid: OccupancyGrid | None
     version: int
     glass: MapCopy | None = None
+    accepted: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -232,11 +234,11 @@ class GraphWorker:
                         log.info("loop closure: %d accepted in all (%d key scans)", closures, done)
                     self.closures = closures
             elif kind == "maps":
-                _, token, stamps, poses, closures, occ, glass, seconds = msg
+                _, token, stamps, poses, accepted, occ, glass, seconds = msg
                 with self._lock:
                     self.map_seconds = seconds
                     old = self._snapshot
-                    self._snapshot = GraphSnapshot(stamps, poses, closures, occ, old.version + 1, glass)
+                    self._snapshot = GraphSnapshot(stamps, poses, len(accepted), occ, old.version + 1, glass, accepted)
                     if token is not None and token == self._finish_token:
                         self._final = self._snapshot
                     self._lock.notify_all()
@@ -284,7 +286,7 @@ def compact(key: KeyScan) -> KeyScan:
 # -- run in the worker process (or thread) ----------------------------------------------------------------
 def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> None:
     """The worker's loop: messages ("key", KeyScan), ("finish", token) or None (stop) from ``inbox``;
-    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, closures, grid, glass, s to build them),
+    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, accepted closures, grid, glass, s to build them),
     ("error", text), ("stopped",) to ``outbox``. ``parent_pid``: in a process, end when that process is gone."""
     if parent_pid is not None:
         _process_setup(parent_pid)
@@ -314,7 +316,7 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
             if gm is not None:
                 glass = gm.copy_maps()
                 occ = glass.occupancy
-        outbox.put(("maps", token, be.stamps(), poses, len(be.closures), occ, glass, time.perf_counter() - t))
+        outbox.put(("maps", token, be.stamps(), poses, tuple(be.closures), occ, glass, time.perf_counter() - t))
         loaded_now("maps")
 
     while True:

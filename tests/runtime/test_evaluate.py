@@ -82,3 +82,23 @@ def test_trajectory_is_scored_at_the_same_scans():
     assert ev.yaw_rms == pytest.approx(0.0, abs=1e-12)  # headings compared modulo a turn
     np.testing.assert_array_equal(ev.final_true, [0.3, 0.0, 0.1])
     assert evaluate_trajectory(est[1:2], truth) is None
+
+
+def test_pose_graph_is_scored_at_its_key_scans_and_closures_against_the_truth():
+    from glassmap.pose.backend import Closure
+    from runtime.evaluate import evaluate_graph
+
+    truth = np.array([[10, 0.0, 0.0, 0.0], [35, 1.0, 0.0, 0.0], [60, 2.0, 0.0, 0.0], [85, 2.0, 1.0, np.pi / 2]])
+    keys = np.array([10.0, 60.0, np.nan, 85.0])  # the third key scan has no true pose
+    poses = np.array([[0.0, 0.0, 0.0], [2.03, 0.0, 0.0], [9.0, 9.0, 0.0], [2.0, 1.04, np.pi / 2]])
+    good = Closure(anchor=0, node=1, pose=np.array([2.01, 0.0, 0.0]), cov=np.eye(3), stamp=0.0)
+    # 10 cm off along x, which a partial closure that constrains only y does not count
+    partial = Closure(anchor=0, node=3, pose=np.array([2.1, 1.0, np.pi / 2]), cov=np.eye(3), stamp=0.0,
+                      proj=np.diag([0.0, 1.0, 1.0]))
+    wrong = Closure(anchor=1, node=3, pose=np.array([0.0, 1.0, np.radians(92.0)]), cov=np.eye(3), stamp=0.0)
+    unscored = Closure(anchor=2, node=3, pose=np.zeros(3), cov=np.eye(3), stamp=0.0)
+    ev = evaluate_graph(keys, poses, (good, partial, wrong, unscored), truth)
+    assert ev.n == 3 and ev.ate == pytest.approx(np.sqrt((0.03 ** 2 + 0.04 ** 2) / 3))
+    assert ev.closures == 3 and ev.false == 1  # the 2 deg one
+    assert ev.worst_xy == pytest.approx(0.01) and ev.worst_yaw == pytest.approx(np.radians(2.0))
+    assert evaluate_graph(np.full(4, np.nan), poses, (), truth) is None

@@ -121,6 +121,7 @@ def test_maps_published_during_the_run_do_not_change_the_final_graph():
     finally:
         w.close()
     assert snap.version >= 2 and snap.closures == len(inline.closures)  # maps published before the final ones
+    assert [(c.anchor, c.node) for c in snap.accepted] == [(c.anchor, c.node) for c in inline.closures]
     np.testing.assert_array_equal(snap.poses, inline.poses())
     assert w.busy_time > 0 and w.pending == 0
 
