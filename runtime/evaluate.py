@@ -175,9 +175,11 @@ class GraphEvaluation:
     worst_yaw: float
 
     def describe(self) -> str:
-        return (f"optimised key-scan trajectory: ATE (RMS) {100 * self.ate:.1f} cm over {self.n} key scans; "
-                f"{self.closures} loop closures scored against the truth, {self.false} false (worst "
-                f"{100 * self.worst_xy:.1f} cm, {np.degrees(self.worst_yaw):.2f} deg where they constrain)")
+        out = f"optimised key-scan trajectory: ATE (RMS) {100 * self.ate:.1f} cm over {self.n} key scans; "
+        if not self.closures:
+            return out + "no loop closure to score against the truth"
+        return out + (f"{self.closures} loop closures scored against the truth, {self.false} false (worst "
+                      f"{100 * self.worst_xy:.1f} cm, {np.degrees(self.worst_yaw):.2f} deg where they constrain)")
 
 
 def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndarray) -> GraphEvaluation | None:

@@ -101,4 +101,6 @@ def test_pose_graph_is_scored_at_its_key_scans_and_closures_against_the_truth():
     assert ev.n == 3 and ev.ate == pytest.approx(np.sqrt((0.03 ** 2 + 0.04 ** 2) / 3))
     assert ev.closures == 3 and ev.false == 1  # the 2 deg one
     assert ev.worst_xy == pytest.approx(0.01) and ev.worst_yaw == pytest.approx(np.radians(2.0))
+    assert "1 false (worst 1.0 cm, 2.00 deg" in ev.describe()
+    assert "no loop closure" in evaluate_graph(keys, poses, (), truth).describe()
     assert evaluate_graph(np.full(4, np.nan), poses, (), truth) is None
