@@ -138,20 +138,26 @@ class TrajectoryEvaluation:
                 f"{100 * self.max_error:.1f} cm, heading RMS {np.degrees(self.yaw_rms):.2f} deg")
 
 
+def _truth_at(keys: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(hit (N,) bool, rows (N, 4)): for each stamp key, whether ``truth`` (m, 4: stamp key, x, y, yaw) has
+    it, and that row (any row where not)."""
+    keys = np.asarray(keys, np.float64).reshape(-1)
+    tru = np.asarray(truth, np.float64).reshape(-1, 4)
+    if not len(tru):
+        return np.zeros(len(keys), dtype=bool), np.zeros((len(keys), 4))
+    order = np.argsort(tru[:, 0], kind="stable")
+    k = order[np.clip(np.searchsorted(tru[order, 0], keys), 0, len(tru) - 1)]
+    return tru[k, 0] == keys, tru[k]
+
+
 def evaluate_trajectory(estimates: np.ndarray, truth: np.ndarray) -> TrajectoryEvaluation | None:
     """Score estimates (n, 4: sensor stamp ms (24-bit), x, y, yaw) against ``truth`` (m, 4: the same columns,
     :class:`runtime.devices.TruthLog`) at the same scans, matched by stamp; None if no scan matches."""
     est = np.asarray(estimates, np.float64).reshape(-1, 4)
-    tru = np.asarray(truth, np.float64).reshape(-1, 4)
-    if not len(est) or not len(tru):
-        return None
-    order = np.argsort(tru[:, 0], kind="stable")
-    keys = tru[order, 0]
-    k = np.clip(np.searchsorted(keys, est[:, 0]), 0, len(keys) - 1)
-    hit = keys[k] == est[:, 0]
+    hit, at = _truth_at(est[:, 0], truth)
     if not hit.any():
         return None
-    e, t = est[hit], tru[order[k[hit]]]
+    e, t = est[hit], at[hit]
     d = np.hypot(e[:, 1] - t[:, 1], e[:, 2] - t[:, 2])
     dyaw = np.angle(np.exp(1j * (e[:, 3] - t[:, 3])))
     return TrajectoryEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), max_error=float(d.max()),
@@ -188,16 +194,10 @@ def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndar
     (N,) are the key scans' stamp keys in the same unit (NaN where unknown). None if no key scan matches."""
     from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW
 
-    tru = np.asarray(truth, np.float64).reshape(-1, 4)
-    keys = np.asarray(keys, np.float64)
-    if not len(tru) or not len(keys):
-        return None
-    order = np.argsort(tru[:, 0], kind="stable")
-    k = np.clip(np.searchsorted(tru[order, 0], keys), 0, len(tru) - 1)
-    hit = tru[order[k], 0] == keys
+    hit, at = _truth_at(keys, truth)
     if not hit.any():
         return None
-    at = tru[order[k], 1:]
+    at = at[:, 1:]
     d = np.hypot(*(np.asarray(poses)[hit, :2] - at[hit, :2]).T)
     errs = np.array([c.error(at[c.anchor], at[c.node]) for c in accepted if hit[c.anchor] and hit[c.node]])
     errs = errs.reshape(-1, 2)
