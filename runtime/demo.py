@@ -69,6 +69,7 @@ class DemoResult:
     estimated_final_cov: np.ndarray | None = None  # its reported 3x3 covariance (m^2, rad^2)
     corrected_final: PoseEstimate | None = None  # with loop closure: the same estimate corrected by the pose graph
     closures: int = 0  # loop closures the pose graph had accepted by then
+    graph_lag: int = 0  # key scans the pose graph had not yet taken in when that estimate was corrected
     graph: GraphEvaluation | None = None  # with loop closure: the final optimised key scans and closures scored
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
@@ -243,6 +244,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
                       estimated_final_cov=est_cov, corrected_final=corrected,
                       closures=graph.closures if graph is not None else 0, graph=graph_eval,
+                      graph_lag=getattr(rt.processor, "graph_lag", 0),
                       true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
                       route_done=driver.follower.done,  # type: ignore[attr-defined]
                       latency=list(rt.latency.latency), stages=dict(rt.latency.stages),
@@ -282,8 +284,8 @@ def format_result(res: DemoResult) -> str:
     k = final_sigmas(res, corrected=True)
     if k is not None:
         e = 100 * float(np.hypot(*(res.corrected_final.pose[:2] - res.true_final_pose[:2])))
-        lines.append(f"corrected by the pose graph ({res.closures} loop closures): final error {e:.1f} cm, "
-                     f"{k:.1f} sigma ({'inside' if k <= 3 else 'OUTSIDE'} 3 sigma)")
+        lines.append(f"corrected by the pose graph ({res.closures} loop closures, {res.graph_lag} key scans not yet "
+                     f"in the graph): final error {e:.1f} cm, {k:.1f} sigma ({'inside' if k <= 3 else 'OUTSIDE'} 3 sigma)")
     if res.graph is not None:
         lines.append(res.graph.describe())
     if res.latency:

@@ -284,6 +284,9 @@ def compact(key: KeyScan) -> KeyScan:
 
 
 # -- run in the worker process (or thread) ----------------------------------------------------------------
+REBUILD_STEP = 20  # key scans a periodic map rebuild integrates between looks at the inbox (~1-2 ms each)
+
+
 def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> None:
     """The worker's loop: messages ("key", KeyScan), ("finish", token) or None (stop) from ``inbox``;
     ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, accepted closures, grid, glass, s to build them),
@@ -296,6 +299,7 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
     be = GraphBackEnd(settings.config, settings.sigma_hit)
     outbox.put(("ready",))
     busy, dirty, last_rebuild, failed = 0.0, False, -float("inf"), False
+    rebuild = None  # the periodic map rebuild in progress: (MapRebuild, stamps, poses, closures, CPU s so far)
     # the kernels load at the first closure check and the first map rebuild: after each, LLVM's pages go
     # (runtime.tuning)
     loaded: set[str] = set()
@@ -305,21 +309,40 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
             loaded.add(what)
             release_compiler_pages()
 
-    def send_maps(token, refresh: bool) -> None:
+    def start_rebuild(refresh: bool):
         nonlocal dirty, last_rebuild
         dirty, last_rebuild = False, time.monotonic()
         poses = be.poses(refresh=refresh)
-        t = time.perf_counter()
+        job = be.map_rebuild(settings.occupancy, settings.resolution, poses, settings.mapper)
+        return job, be.stamps(), poses, tuple(be.closures), 0.0
+
+    def send_maps(token, job, stamps, poses, closures, seconds: float) -> None:
         occ = glass = None
-        if len(be):
-            occ, gm = be.corrected_maps(settings.occupancy, settings.resolution, poses, settings.mapper)
-            if gm is not None:
-                glass = gm.copy_maps()
+        if len(stamps):
+            occ = job.occ
+            if job.glass is not None:
+                glass = job.glass.copy_maps()
                 occ = glass.occupancy
-        outbox.put(("maps", token, be.stamps(), poses, tuple(be.closures), occ, glass, time.perf_counter() - t))
+        outbox.put(("maps", token, stamps, poses, closures, occ, glass, seconds))
         loaded_now("maps")
 
     while True:
+        if rebuild is not None and _empty(inbox):
+            # the periodic rebuild goes on a few key scans at a time, so that new key scans (and the
+            # corrections the runtime reports with them) never wait for a whole rebuild
+            t = time.perf_counter()
+            try:
+                job, stamps, poses, closures, seconds = rebuild
+                finished = job.step(REBUILD_STEP)
+                seconds += time.perf_counter() - t
+                rebuild = None if finished else (job, stamps, poses, closures, seconds)
+                if finished:
+                    send_maps(None, job, stamps, poses, closures, seconds)
+            except Exception as exc:  # reported to the runtime; the scans go on without the back end
+                failed, rebuild = True, None
+                outbox.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            busy += time.perf_counter() - t
+            continue
         msg = inbox.get()
         if msg is None:
             outbox.put(("stopped",))
@@ -336,12 +359,14 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
                 busy += time.perf_counter() - t
                 outbox.put(("done", len(be), be.correction(), len(be.closures), busy))
                 # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
-                if dirty and _empty(inbox) and time.monotonic() - last_rebuild >= settings.rebuild_period:
-                    t = time.perf_counter()
-                    send_maps(None, refresh=False)
-                    busy += time.perf_counter() - t
-            else:
-                send_maps(msg[1], refresh=True)
+                if (rebuild is None and dirty and _empty(inbox)
+                        and time.monotonic() - last_rebuild >= settings.rebuild_period):
+                    rebuild = start_rebuild(refresh=False)
+            else:  # finish: the final maps, at once (a periodic rebuild in progress is superseded)
+                job, stamps, poses, closures, _ = start_rebuild(refresh=True)
+                job.step(len(stamps))
+                rebuild = None
+                send_maps(msg[1], job, stamps, poses, closures, time.perf_counter() - t)
                 busy += time.perf_counter() - t
         except Exception as exc:  # reported to the runtime; the scans go on without the back end
             failed = True

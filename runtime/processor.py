@@ -69,6 +69,7 @@ class MappingProcessor:
             backend = BackEndConfig()
             self.graph = GraphWorker(backend, ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
             self._closure_sigma = backend.closure.cov_floor
+        self.graph_lag = 0  # key scans the pose graph had not taken in when the last corrected estimate was made
         self.latest_odom: Odometry | None = None
         self.scans = 0
         one_blas_thread()  # small products in one processing thread (runtime.tuning)
@@ -126,6 +127,7 @@ class MappingProcessor:
             from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
             correction, closures = self.graph.latest_correction()
+            self.graph_lag = self.graph.pending
             corrected = corrected_estimate(est, correction, closures, self._closure_sigma)
         self.scans += 1
         st = self.estimator.stats

@@ -27,7 +27,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams
 from glassmap.mapping import GlassMapper, MapperConfig
-from glassmap.pose.corrected import rebuild_maps
+from glassmap.pose.corrected import MapRebuild, rebuild_maps
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, compose_jacobians, relative
@@ -178,6 +178,12 @@ class GraphBackEnd:
         (``poses``, default the current solution); see :func:`glassmap.pose.corrected.rebuild_maps`."""
         poses = self.poses() if poses is None else poses
         return rebuild_maps(self.keys, poses, params, resolution, mapper)
+
+    def map_rebuild(self, params: OccupancyParams = OccupancyParams(), resolution: float = 0.05,
+                    poses: np.ndarray | None = None, mapper: MapperConfig | None = None) -> MapRebuild:
+        """:meth:`corrected_maps` to build a few key scans at a time (:class:`~glassmap.pose.corrected.MapRebuild`);
+        key scans added after this call are not in it."""
+        return MapRebuild(self.keys, self.poses() if poses is None else poses, params, resolution, mapper)
 
     def correct(self, pose: np.ndarray) -> np.ndarray:
         """A front-end pose (3,) in the corrected frame."""

@@ -64,24 +64,49 @@ class NoClassifier:
                            "it does not classify")
 
 
+class MapRebuild:
+    """The occupancy grid of ``keys`` at ``poses`` (N, 3) (base, map frame), and with ``mapper`` a
+    :class:`GlassMapper` whose glass map is built from the key scans that carry p(glass), built a few key
+    scans at a time (:meth:`step`) so that a worker can do other work in between. ``grid``: an empty grid to
+    build on (default: a new one of ``resolution``), e.g. one aligned with a blueprint. The key scans and poses
+    are taken as they are now (a later key scan is not included)."""
+
+    def __init__(self, keys: Sequence[KeyScan], poses: np.ndarray, occupancy: OccupancyParams = OccupancyParams(),
+                 resolution: float = 0.05, mapper: MapperConfig | None = None, grid: MapGrid | None = None) -> None:
+        self.occ = OccupancyGrid(grid if grid is not None else MapGrid(resolution), occupancy)
+        self.glass = GlassMapper(self.occ, mapper, classifier=NoClassifier()) if mapper is not None else None
+        self._poses = np.asarray(poses, dtype=np.float64)
+        self._keys = list(keys)[: len(self._poses)]
+        self._next = 0
+
+    @property
+    def done(self) -> bool:
+        return self._next >= len(self._keys)
+
+    def step(self, n: int) -> bool:
+        """Integrate the next ``n`` key scans; returns :attr:`done`."""
+        gm = self.glass
+        for pose, k in zip(self._poses[self._next:self._next + n], self._keys[self._next:self._next + n]):
+            lp = compose(pose, k.mount)
+            if gm is None or k.scan is None or k.p_glass is None:
+                self.occ.integrate(lp, k.angles, k.ranges, k.range_max)
+                continue
+            scan = k.scan
+            gm.integrate(scan, lp)
+            use = np.isfinite(k.p_glass)
+            beams = BeamGlass(np.asarray(k.p_glass, dtype=np.float64), np.full(k.p_glass.shape, np.nan))
+            if gm.config.glass_hits_occupy or gm.config.protect == "hits":
+                gm.mark_glass_hits(beams, use, scan, lp)
+            gm.register(beams, use, scan, lp, relative_sigma(k, scan.ranges))
+        self._next = min(self._next + n, len(self._keys))
+        return self.done
+
+
 def rebuild_maps(keys: Sequence[KeyScan], poses: np.ndarray, occupancy: OccupancyParams = OccupancyParams(),
                  resolution: float = 0.05, mapper: MapperConfig | None = None, grid: MapGrid | None = None
                  ) -> tuple[OccupancyGrid, GlassMapper | None]:
-    """The occupancy grid of ``keys`` at ``poses`` (N, 3) (base, map frame), and with ``mapper`` a
-    :class:`GlassMapper` whose glass map is built from the key scans that carry p(glass). ``grid``: an empty
-    grid to build on (default: a new one of ``resolution``), e.g. one aligned with a blueprint."""
-    occ = OccupancyGrid(grid if grid is not None else MapGrid(resolution), occupancy)
-    gm = GlassMapper(occ, mapper, classifier=NoClassifier()) if mapper is not None else None
-    for pose, k in zip(np.asarray(poses, dtype=np.float64), keys):
-        lp = compose(pose, k.mount)
-        if gm is None or k.scan is None or k.p_glass is None:
-            occ.integrate(lp, k.angles, k.ranges, k.range_max)
-            continue
-        scan = k.scan
-        gm.integrate(scan, lp)
-        use = np.isfinite(k.p_glass)
-        beams = BeamGlass(np.asarray(k.p_glass, dtype=np.float64), np.full(k.p_glass.shape, np.nan))
-        if gm.config.glass_hits_occupy or gm.config.protect == "hits":
-            gm.mark_glass_hits(beams, use, scan, lp)
-        gm.register(beams, use, scan, lp, relative_sigma(k, scan.ranges))
-    return occ, gm
+    """The maps of :class:`MapRebuild`, built at once."""
+    job = MapRebuild(keys, poses, occupancy, resolution, mapper, grid)
+    while not job.step(100):
+        pass
+    return job.occ, job.glass

@@ -9,7 +9,7 @@ import pytest
 from glassmap.mapping import MapperConfig
 from glassmap.grid import MapGrid
 from glassmap.pose.backend import corrected_estimate
-from glassmap.pose.corrected import NoClassifier, rebuild_maps, relative_sigma
+from glassmap.pose.corrected import MapRebuild, NoClassifier, rebuild_maps, relative_sigma
 from glassmap.types import PoseEstimate, Scan
 from tests.pose.test_loop_closure import GEOM, _keys, _ring, _route
 
@@ -35,6 +35,24 @@ def test_rebuild_puts_glass_evidence_on_the_walls_at_the_given_poses():
     assert np.nanmedian(conf[walls]) > 0.6  # glass believed on the walls
     occ_only, none = rebuild_maps(keys, truth)
     assert none is None and (occ_only.occupied() == occ.occupied()).mean() > 0.99
+
+
+def test_a_rebuild_in_steps_gives_the_maps_of_one_at_once_and_ignores_later_key_scans():
+    truth = _route([(-8.5, -4.5), (-5.0, -4.5)])
+    keys = [replace(k, scan=Scan(stamp=k.stamp, ranges=k.ranges, intensities=None, geometry=GEOM),
+                    p_glass=np.where(np.isfinite(k.ranges), 0.9, np.nan)) for k in _keys(_ring(), truth, 0.0)]
+    occ, gm = rebuild_maps(keys, truth, mapper=MapperConfig())
+    growing = list(keys[:-5])
+    job = MapRebuild(growing, truth, mapper=MapperConfig())
+    growing.extend(keys[-5:])  # added after the rebuild started (the worker's graph goes on)
+    steps = 1
+    while not job.step(7):
+        steps += 1
+    assert steps == int(np.ceil((len(keys) - 5) / 7)) and job.done
+    short, short_gm = rebuild_maps(keys[:-5], truth, mapper=MapperConfig())
+    np.testing.assert_array_equal(job.occ.log_odds, short.log_odds)
+    np.testing.assert_array_equal(job.glass.confidence_map(), short_gm.confidence_map())
+    assert not np.array_equal(job.occ.log_odds, occ.log_odds)
 
 
 def test_rebuild_on_a_given_grid_keeps_its_origin_and_never_classifies():

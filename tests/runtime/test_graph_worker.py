@@ -117,6 +117,9 @@ def test_maps_published_during_the_run_do_not_change_the_final_graph():
             w.submit(k)
             while i % 10 == 9 and w.pending:  # let it catch up now and then, as a live run does
                 time.sleep(0.01)
+        deadline = time.monotonic() + 60.0
+        while w.snapshot().version < 1 and time.monotonic() < deadline:  # a rebuild goes on between key scans
+            time.sleep(0.01)
         snap = w.finish(timeout=120.0)
     finally:
         w.close()
