@@ -10,7 +10,10 @@ on a busy machine the scans come first). The processing thread hands over each k
 correction after each key scan. After accepted loop closures (once it has caught up with its queue, at most
 every ``rebuild_period`` s) and when asked at the end of a run (:meth:`GraphWorker.finish`), it
 re-integrates the key scans at the optimised poses into a corrected occupancy grid and, when the key scans
-carry p(glass), a corrected glass map (:func:`glassmap.pose.corrected.rebuild_maps`), and sends them back.
+carry p(glass), a corrected glass map (:class:`glassmap.pose.corrected.MapRebuild`), and sends them back.
+The periodic rebuild goes on ``REBUILD_STEP`` key scans at a time while no key scan is waiting: a whole one
+takes seconds on a long loop, and the corrections (which the runtime applies to every scan) must not wait
+for it.
 A reader thread in the runtime's process takes in what comes back; readers take snapshots under a lock.
 
 Every key scan is processed in order and intermediate maps are read without touching the graph
