@@ -154,11 +154,11 @@ class GraphWorker:
             self._submitted += 1
         self._inbox.put(("key", compact(key)))
 
-    def latest_correction(self) -> tuple[np.ndarray, int]:
-        """(3,) the latest correction (compose(correction, front-end pose) = corrected pose) and the loop
-        closures accepted up to it."""
+    def latest_correction(self) -> tuple[np.ndarray, int, int]:
+        """(3,) the latest correction (compose(correction, front-end pose) = corrected pose), the loop
+        closures accepted up to it, and the key scans submitted since that are not yet in the graph."""
         with self._lock:
-            return self._correction.copy(), self.closures
+            return self._correction.copy(), self.closures, self._submitted - self._done
 
     def snapshot(self) -> GraphSnapshot:
         with self._lock:
@@ -307,6 +307,9 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
     # (runtime.tuning)
     loaded: set[str] = set()
 
+    def report(exc: Exception) -> None:  # to the runtime; the scans go on without the back end
+        outbox.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+
     def loaded_now(what: str) -> None:
         if what not in loaded:
             loaded.add(what)
@@ -341,9 +344,9 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
                 rebuild = None if finished else (job, stamps, poses, closures, seconds)
                 if finished:
                     send_maps(None, job, stamps, poses, closures, seconds)
-            except Exception as exc:  # reported to the runtime; the scans go on without the back end
+            except Exception as exc:
                 failed, rebuild = True, None
-                outbox.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+                report(exc)
             busy += time.perf_counter() - t
             continue
         msg = inbox.get()
@@ -371,9 +374,9 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
                 rebuild = None
                 send_maps(msg[1], job, stamps, poses, closures, time.perf_counter() - t)
                 busy += time.perf_counter() - t
-        except Exception as exc:  # reported to the runtime; the scans go on without the back end
+        except Exception as exc:
             failed = True
-            outbox.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            report(exc)
 
 
 def _empty(inbox) -> bool:

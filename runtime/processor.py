@@ -126,8 +126,7 @@ class MappingProcessor:
                 self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
             from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
-            correction, closures = self.graph.latest_correction()
-            self.graph_lag = self.graph.pending
+            correction, closures, self.graph_lag = self.graph.latest_correction()
             corrected = corrected_estimate(est, correction, closures, self._closure_sigma)
         self.scans += 1
         st = self.estimator.stats
