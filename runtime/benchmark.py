@@ -38,7 +38,8 @@ class BenchmarkConfig:
     world's default route; classifier_poses: scans of labelled beams per world and seed; trials: trials
     of the paper's experiment per world and seed, with sigma_xy (m) / sigma_theta_deg of pose error;
     demo_speed: the demo's speed-up over real time; demo_duration: emulated seconds after which the demo
-    stops even if the route is not done (None: when it is done); parts: which of PARTS to run."""
+    stops even if the route is not done (None: when it is done); demo_loop_closure: run the demo with the
+    pose graph (its final estimate is then the one the graph corrected); parts: which of PARTS to run."""
 
     generated: int = 20
     worlds: tuple[str, ...] = BUILTIN
@@ -50,6 +51,7 @@ class BenchmarkConfig:
     sigma_theta_deg: float = 0.25
     demo_speed: float = 2.0
     demo_duration: float | None = None
+    demo_loop_closure: bool = False
     parts: tuple[str, ...] = PARTS
     out_dir: str = "out/eval"
 
@@ -188,22 +190,36 @@ def _pose(task: Task, cfg: BenchmarkConfig) -> list[dict]:
 
 def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     from glassmap.sim.world import load_world
-    from runtime.demo import DemoOptions, run_demo
+    from runtime.config import MappingConfig, RuntimeConfig
+    from runtime.demo import DemoOptions, final_sigmas, run_demo
 
     world = load_world(task.path)
     out = Path(cfg.out_dir) / "demo" / f"{task.world}-s{task.seed}"
+    config = RuntimeConfig(mapping=MappingConfig(loop_closure=cfg.demo_loop_closure))
     opts = DemoOptions(world=task.path, route=_route(world, cfg), speed=cfg.demo_speed, seed=task.seed,
-                       out_dir=str(out), record=False, progress=False, duration=cfg.demo_duration)
+                       out_dir=str(out), record=False, progress=False, duration=cfg.demo_duration, config=config)
     res = asyncio.run(run_demo(opts))
     ev = res.evaluation
     s = res.summary.stages
+    nan = float("nan")
     err = (float(np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2])))
-           if res.estimated_final_pose is not None else float("nan"))
-    return [dict(error=ev.error if ev else float("nan"), glass_recall=ev.glass_recall if ev else float("nan"),
-                 false_glass_rate=ev.false_glass_rate if ev else float("nan"),
-                 aligned_error=ev.aligned.error if ev is not None and ev.aligned is not None else float("nan"),
+           if res.estimated_final_pose is not None else nan)
+    # the estimate the runtime reports at the end: the pose graph's correction of the front end's, if it ran
+    front = final_sigmas(res)
+    corrected = final_sigmas(res, corrected=True)
+    final = corrected if corrected is not None else front
+    lost_stop = res.summary.stop_reason.startswith("pose estimate lost")
+    silent = nan if final is None else float(final > 3.0 and not lost_stop)
+    g = res.graph
+    return [dict(error=ev.error if ev else nan, glass_recall=ev.glass_recall if ev else nan,
+                 false_glass_rate=ev.false_glass_rate if ev else nan,
+                 aligned_error=ev.aligned.error if ev is not None and ev.aligned is not None else nan,
                  final_pose_error=err, route_done=bool(res.route_done), scans_received=s.scans_received,
-                 scans_processed=s.scans_processed, dropped=s.dropped_overflow + s.dropped_stale)]
+                 scans_processed=s.scans_processed, dropped=s.dropped_overflow + s.dropped_stale,
+                 ate=res.trajectory.ate if res.trajectory is not None else nan,
+                 frontend_sigma=nan if front is None else front, final_sigma=nan if final is None else final,
+                 stopped_lost=lost_stop, silent_divergence=silent, closures=res.closures,
+                 false_closures=g.false if g is not None else 0, graph_lag=res.graph_lag)]
 
 
 _RUNNERS = {"classifier": _classifier, "map": _map, "experiment": _experiment, "pose": _pose, "demo": _demo}
@@ -281,6 +297,8 @@ METRICS: dict[str, tuple[str, str | None, str, bool]] = {
     "pose_inside_95": ("pose", None, "inside_95", True),
     "demo_error": ("demo", None, "error", False),
     "demo_glass_recall": ("demo", None, "glass_recall", True),
+    "demo_final_sigma": ("demo", None, "final_sigma", False),
+    "demo_silent_divergence": ("demo", None, "silent_divergence", False),
 }
 
 
@@ -447,6 +465,8 @@ _LABELS = {
     "pose_inside_95": "pose share inside the 95 % bound",
     "demo_error": "demo per-cell error",
     "demo_glass_recall": "demo glass recall",
+    "demo_final_sigma": "demo final position error (sigma)",
+    "demo_silent_divergence": "demo runs ending > 3 sigma off, not stopped",
 }
 
 
@@ -454,7 +474,8 @@ _WORLD_COLUMNS = [("clf_glass_precision", "clf prec."), ("clf_glass_recall", "cl
                   ("clf_calibration_error", "clf ECE"), ("map_error_true_poses", "map err. true poses"),
                   ("exp_direct_mean", "direct"), ("exp_robust3_mean", "robust 3x3"), ("exp_robust5_mean", "robust 5x5"),
                   ("pose_ate_rmse", "ATE (m)"), ("pose_nees_mean", "NEES"), ("pose_inside_95", "in 95 %"),
-                  ("demo_error", "demo err."), ("demo_glass_recall", "demo glass recall")]
+                  ("demo_error", "demo err."), ("demo_glass_recall", "demo glass recall"),
+                  ("demo_final_sigma", "demo final sigma"), ("demo_silent_divergence", "demo diverged")]
 
 
 def summary_markdown(doc: dict) -> str:
@@ -520,6 +541,8 @@ def config_from_args(args) -> BenchmarkConfig:
         changes["parts"] = tuple(p for p in args.parts.split(",") if p)
     if args.demo_speed is not None:
         changes["demo_speed"] = args.demo_speed
+    if args.demo_loop_closure:
+        changes["demo_loop_closure"] = True
     if args.classifier_poses is not None:
         changes["classifier_poses"] = args.classifier_poses
     if args.out is not None:
@@ -545,6 +568,11 @@ def add_arguments(p) -> None:
                    "--quick 2)")
     p.add_argument("--parts", default=None, help=f"comma-separated parts (default all: {','.join(PARTS)})")
     p.add_argument("--demo-speed", type=float, default=None, help="demo speed-up over real time (default 2)")
+    p.add_argument("--demo-loop-closure", action="store_true", help="run the demo with the pose graph and loop "
+                   "closure (--mapping.loop_closure); its final estimate is then the graph's correction. Per run: "
+                   "the final position error in sigma of the reported covariance, and whether the run ended more "
+                   "than 3 sigma off without the runtime having stopped on a lost track (issue 20, item 0). Run "
+                   "the demo part with --workers 1: demos run in real time (times --demo-speed)")
     p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed "
                    "(default 200, --quick 60)")
     add_out(p, None, "output directory; None = out/eval (--quick: out/eval-quick)")

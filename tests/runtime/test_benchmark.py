@@ -43,6 +43,7 @@ def test_benchmark_on_a_tiny_world_end_to_end(tmp_path):
         assert k in row, k
     for k in ("clf_glass_recall", "map_error_true_poses", "exp_robust3_mean", "pose_ate_rmse", "demo_error"):
         assert 0.0 <= row[k] < 10.0, k
+    assert 0.0 <= row["demo_final_sigma"] < 3.0 and row["demo_silent_divergence"] == 0.0
     doc = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert "| tiny | file |" in (tmp_path / "out" / "summary.md").read_text()
     assert doc["worlds"][0]["world"] == "tiny" and "files" in doc["summary"]
@@ -69,3 +70,18 @@ def test_config_rejects_unknown_parts_and_test_seed_range():
         BenchmarkConfig(parts=("nope",))
     with pytest.raises(ValueError, match="0-100"):
         BenchmarkConfig(generated=101)
+
+
+def test_demo_part_reports_the_final_error_in_sigma_with_the_pose_graph(tmp_path):
+    """With --demo-loop-closure the demo runs the pose graph; each run says how many sigma its final estimate
+    is off and whether it diverged silently (more than 3 sigma off without a lost-track stop)."""
+    from runtime.benchmark import Task, _demo
+
+    world = tmp_path / "tiny.toml"
+    world.write_text(TINY)
+    cfg = BenchmarkConfig(generated=0, worlds=(str(world),), seeds=(0,), demo_speed=2.0, demo_duration=6.0,
+                          demo_loop_closure=True, parts=("demo",), out_dir=str(tmp_path / "out"))
+    (row,) = _demo(Task("tiny", str(world), "file", "demo", 0), cfg)
+    assert row["closures"] == 0 and row["false_closures"] == 0  # a 3 m route closes no loop
+    assert 0.0 <= row["final_sigma"] < 3.0 and row["silent_divergence"] == 0.0 and not row["stopped_lost"]
+    assert row["final_sigma"] == pytest.approx(row["frontend_sigma"], rel=1e-6)  # no closure: nothing corrected
