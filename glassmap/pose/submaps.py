@@ -1,8 +1,10 @@
 """Submaps: runs of consecutive key scans, each with its own local occupancy grid and likelihood field.
 
 A submap's frame is the front-end pose of its first key scan (its anchor node in the pose graph). Within a
-submap the front end's poses are locally consistent (a few metres of travel), so its scans are placed at
-their front-end poses relative to the anchor; the pose graph moves submaps as rigid bodies. A loop-closure candidate is matched against a group of
+submap the front end's poses are locally consistent (a metre of travel), so its scans are placed at their
+front-end poses relative to the anchor; the pose graph moves submaps as rigid bodies. Short submaps keep
+the front end's drift out of what a closure matches against: the drift inside one submap is not in the
+graph, so a closure inherits it (docs/loop-closure.md, "Shorter submaps"). A loop-closure candidate is matched against a group of
 neighbouring old submaps placed by the pose graph; their grid and likelihood field are built only then
 (:meth:`SubmapStore.field`) and the last few are cached, so memory holds scans, not grids.
 """
@@ -26,7 +28,7 @@ class SubmapConfig:
     build a submap's grid; resolution (m); cache: built fields kept; field: likelihood-field settings
     (``half_size`` m: the crop, enough for a submap and the beams from it)."""
 
-    length: float = 4.0
+    length: float = 1.0
     range_max: float = 12.0
     resolution: float = 0.05
     cache: int = 4
