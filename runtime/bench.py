@@ -245,7 +245,6 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
                          f"{graph.busy_time:.2f} s; waited {r.graph_wait:.2f} s after the last scan for it to catch "
                          f"up and build the final corrected maps ({graph.map_seconds:.2f} s of it): "
                          f"{r.data_time / total:.1f}x real time with the wait")
-            graph.close()
         lines += _stage_lines(r.stages, "")
         peaks[f"replay from {source}"] = peak_rss_mib()
         del r  # its processor (grids, likelihood fields, reference cycles) is gone before the next run starts

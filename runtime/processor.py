@@ -136,10 +136,15 @@ class MappingProcessor:
                           odom=self.latest_odom, timings=timings, corrected_pose=corrected)
 
     def finish_graph(self, timeout: float = 60.0):
-        """Wait for the pose-graph worker to take in every key scan and return its final
-        :class:`~runtime.graph_worker.GraphSnapshot` (optimised trajectory + corrected grid); None without
-        loop closure."""
-        return None if self.graph is None else self.graph.finish(timeout)
+        """Wait for the pose-graph worker to take in every key scan, return its final
+        :class:`~runtime.graph_worker.GraphSnapshot` (optimised trajectory + corrected grid) and stop the
+        worker, so that its process does not outlive the run; None without loop closure."""
+        if self.graph is None:
+            return None
+        try:
+            return self.graph.finish(timeout)
+        finally:
+            self.graph.close()
 
     def copy_maps(self):
         """Copies of the maps (a picklable :class:`~glassmap.mapping.MapCopy`) to publish or export elsewhere:

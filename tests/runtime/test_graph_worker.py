@@ -95,6 +95,7 @@ def test_processor_hands_key_scans_to_the_worker_and_reports_corrected_poses(tmp
         snap = proc.finish_graph()
         assert len(snap.stamps) == proc.estimator.stats.keyframes
         assert snap.glass is not None and snap.glass.grid is snap.grid.grid  # the glass map rebuilt too
+        assert not proc.graph._alive()  # the worker is stopped with the run: no process left behind
     finally:
         proc.graph.close()
     assert MappingProcessor(MappingConfig()).finish_graph() is None
