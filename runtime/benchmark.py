@@ -569,10 +569,10 @@ def add_arguments(p) -> None:
     p.add_argument("--parts", default=None, help=f"comma-separated parts (default all: {','.join(PARTS)})")
     p.add_argument("--demo-speed", type=float, default=None, help="demo speed-up over real time (default 2)")
     p.add_argument("--demo-loop-closure", action="store_true", help="run the demo with the pose graph and loop "
-                   "closure (--mapping.loop_closure); its final estimate is then the graph's correction. Per run: "
-                   "the final position error in sigma of the reported covariance, and whether the run ended more "
-                   "than 3 sigma off without the runtime having stopped on a lost track (issue 20, item 0). Run "
-                   "the demo part with --workers 1: demos run in real time (times --demo-speed)")
+                   "closure (--mapping.loop_closure); the final estimate scored is then the graph's correction of "
+                   "the front end's. Every demo run reports that estimate's error in sigma of its covariance and "
+                   "whether it ended more than 3 sigma off without the runtime having stopped on a lost track "
+                   "(issue 20, item 0). Demos run in real time (times --demo-speed): use --workers 1")
     p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed "
                    "(default 200, --quick 60)")
     add_out(p, None, "output directory; None = out/eval (--quick: out/eval-quick)")
