@@ -208,6 +208,8 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     front = final_sigmas(res)
     corrected = final_sigmas(res, corrected=True)
     final = corrected if corrected is not None else front
+    c = res.corrected_final
+    final_err = err if c is None else float(np.hypot(*(np.asarray(c.pose[:2]) - res.true_final_pose[:2])))
     lost_stop = res.summary.stop_reason.startswith("pose estimate lost")
     silent = nan if final is None else float(final > 3.0 and not lost_stop)
     g = res.graph
@@ -217,7 +219,8 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
                  final_pose_error=err, route_done=bool(res.route_done), scans_received=s.scans_received,
                  scans_processed=s.scans_processed, dropped=s.dropped_overflow + s.dropped_stale,
                  ate=res.trajectory.ate if res.trajectory is not None else nan,
-                 frontend_sigma=nan if front is None else front, final_sigma=nan if final is None else final,
+                 frontend_sigma=nan if front is None else front, final_error=final_err,
+                 final_sigma=nan if final is None else final,
                  stopped_lost=lost_stop, silent_divergence=silent, closures=res.closures,
                  false_closures=g.false if g is not None else 0, graph_lag=res.graph_lag)]
 

@@ -85,3 +85,4 @@ def test_demo_part_reports_the_final_error_in_sigma_with_the_pose_graph(tmp_path
     assert row["closures"] == 0 and row["false_closures"] == 0  # a 3 m route closes no loop
     assert 0.0 <= row["final_sigma"] < 3.0 and row["silent_divergence"] == 0.0 and not row["stopped_lost"]
     assert row["final_sigma"] == pytest.approx(row["frontend_sigma"], rel=1e-6)  # no closure: nothing corrected
+    assert row["final_error"] == pytest.approx(row["final_pose_error"], abs=1e-9)
