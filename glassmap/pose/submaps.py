@@ -3,10 +3,11 @@
 A submap's frame is the front-end pose of its first key scan (its anchor node in the pose graph). Within a
 submap the front end's poses are locally consistent (a metre of travel), so its scans are placed at their
 front-end poses relative to the anchor; the pose graph moves submaps as rigid bodies. Short submaps keep
-the front end's drift out of what a closure matches against: the drift inside one submap is not in the
-graph, so a closure inherits it (docs/loop-closure.md, "Shorter submaps"). A loop-closure candidate is matched against a group of
-neighbouring old submaps placed by the pose graph; their grid and likelihood field are built only then
-(:meth:`SubmapStore.field`) and the last few are cached, so memory holds scans, not grids.
+the front end's drift out of what a closure matches against: the drift inside one submap is in no edge of
+the graph, so a closure inherits it (docs/loop-closure.md, "Shorter submaps"). A loop-closure candidate is
+matched against a group of neighbouring old submaps placed by the pose graph; their grid and likelihood
+field are built only then (:meth:`SubmapStore.field`) and the last few are cached, so memory holds scans,
+not grids.
 """
 
 from __future__ import annotations
