@@ -191,7 +191,7 @@ def _pose(task: Task, cfg: BenchmarkConfig) -> list[dict]:
 def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     from glassmap.sim.world import load_world
     from runtime.config import MappingConfig, RuntimeConfig
-    from runtime.demo import DemoOptions, final_sigmas, run_demo
+    from runtime.demo import DemoOptions, final_error, run_demo
 
     world = load_world(task.path)
     out = Path(cfg.out_dir) / "demo" / f"{task.world}-s{task.seed}"
@@ -205,13 +205,10 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     err = (float(np.hypot(*(res.estimated_final_pose[:2] - res.true_final_pose[:2])))
            if res.estimated_final_pose is not None else nan)
     # the estimate the runtime reports at the end: the pose graph's correction of the front end's, if it ran
-    front = final_sigmas(res)
-    corrected = final_sigmas(res, corrected=True)
-    final = corrected if corrected is not None else front
-    c = res.corrected_final
-    final_err = err if c is None else float(np.hypot(*(np.asarray(c.pose[:2]) - res.true_final_pose[:2])))
+    front = final_error(res)
+    final = final_error(res, corrected=True) or front
     lost_stop = res.summary.stop_reason.startswith("pose estimate lost")
-    silent = nan if final is None else float(final > 3.0 and not lost_stop)
+    silent = nan if final is None else float(final[1] > 3.0 and not lost_stop)
     g = res.graph
     return [dict(error=ev.error if ev else nan, glass_recall=ev.glass_recall if ev else nan,
                  false_glass_rate=ev.false_glass_rate if ev else nan,
@@ -219,8 +216,8 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
                  final_pose_error=err, route_done=bool(res.route_done), scans_received=s.scans_received,
                  scans_processed=s.scans_processed, dropped=s.dropped_overflow + s.dropped_stale,
                  ate=res.trajectory.ate if res.trajectory is not None else nan,
-                 frontend_sigma=nan if front is None else front, final_error=final_err,
-                 final_sigma=nan if final is None else final,
+                 frontend_sigma=nan if front is None else front[1], final_error=nan if final is None else final[0],
+                 final_sigma=nan if final is None else final[1],
                  stopped_lost=lost_stop, silent_divergence=silent, closures=res.closures,
                  false_closures=g.false if g is not None else 0, graph_lag=res.graph_lag)]
 

@@ -251,10 +251,10 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
                       device_report=report)
 
 
-def final_sigmas(res: DemoResult, corrected: bool = False) -> float | None:
-    """The final position error in units of the reported covariance: sqrt(e^T P_xy^-1 e), of the front end's
-    estimate or (``corrected``) of the pose graph's corrected one (None without that estimate or with a
-    non-finite true pose)."""
+def final_error(res: DemoResult, corrected: bool = False) -> tuple[float, float] | None:
+    """(m, sigma): the final position error, and the same in units of the reported covariance,
+    sqrt(e^T P_xy^-1 e), of the front end's estimate or (``corrected``) of the pose graph's corrected one (None
+    without that estimate or with a non-finite true pose)."""
     if corrected:
         c = res.corrected_final
         pose, cov = (None, None) if c is None else (c.pose, c.covariance)
@@ -265,7 +265,7 @@ def final_sigmas(res: DemoResult, corrected: bool = False) -> float | None:
     e = np.asarray(pose[:2]) - np.asarray(res.true_final_pose[:2])
     if not np.all(np.isfinite(e)):
         return None
-    return float(np.sqrt(e @ np.linalg.solve(np.asarray(cov)[:2, :2], e)))
+    return float(np.hypot(*e)), float(np.sqrt(e @ np.linalg.solve(np.asarray(cov)[:2, :2], e)))
 
 
 def format_result(res: DemoResult) -> str:
@@ -276,14 +276,15 @@ def format_result(res: DemoResult) -> str:
         lines.append(res.trajectory.describe())
     else:
         lines.append("pose error: not available (no true pose matched a processed scan)")
-    k = final_sigmas(res)
-    if k is not None:
+    fe = final_error(res)
+    if fe is not None:
+        k = fe[1]
         lines.append(f"final pose error in the reported covariance: {k:.1f} sigma (xy Mahalanobis; "
                      f"{'inside' if k <= 3 else 'OUTSIDE'} 3 sigma); pose track {s.pose_status or '?'}, "
                      f"{s.pose_gated} scan matches rejected, lost {s.pose_lost} times")
-    k = final_sigmas(res, corrected=True)
-    if k is not None:
-        e = 100 * float(np.hypot(*(res.corrected_final.pose[:2] - res.true_final_pose[:2])))
+    ce = final_error(res, corrected=True)
+    if ce is not None:
+        e, k = 100 * ce[0], ce[1]
         lines.append(f"corrected by the pose graph ({res.closures} loop closures, {res.graph_lag} key scans not yet "
                      f"in the graph): final error {e:.1f} cm, {k:.1f} sigma ({'inside' if k <= 3 else 'OUTSIDE'} 3 sigma)")
     if res.graph is not None:
