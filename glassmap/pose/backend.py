@@ -12,7 +12,12 @@ builds; the back end takes each key scan it hands over (``PoseEstimator.last_key
   a corridor, where odometry then dominates);
 * files it into the open :class:`~glassmap.pose.submaps.Submap`;
 * every few key scans asks the :class:`~glassmap.pose.loop_closure.LoopCloser` for closures against older
-  submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves).
+  submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves). Before that, each closure is compared
+  with the front end's own relative pose between its two nodes, whose covariance is the scaled chain's between
+  them: a front end that drifted more than ``chain_scale`` allows (a steady turn, a slide along a corridor)
+  fails this test (squared Mahalanobis distance above the chi-square ``chain_gate`` point), and the
+  sequential edges between the two nodes get their unscaled covariance back (the graph is solved again), so
+  that the closure's correction is spread along them as a random walk instead of bending the stiff chain.
 
 The corrected pose of anything the front end places is ``correct(pose)``: the front-end pose moved by the
 correction of the newest node (graph solution (+) front-end pose^-1). The back end is pure computation; the
@@ -35,15 +40,24 @@ from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.types import PoseEstimate, wrap_angle
 
 
+# chi-square points by probability and degrees of freedom (BackEndConfig.chain_gate)
+_CHI2 = {0.99: {1: 6.63, 2: 9.21, 3: 11.34}, 0.999: {1: 10.83, 2: 13.82, 3: 16.27}}
+
+
 @dataclass(frozen=True)
 class BackEndConfig:
     """motion: the odometry noise model of odometry edges; match_scale: multiplies the covariance of
     scan-match edges (see the module docstring); min_sigma: (x, y, yaw) standard deviations
-    added to every sequential edge (m, m, rad); loop_closure: on/off and its settings; submaps."""
+    added to every sequential edge (m, m, rad); chain_scale: multiplies a sequential edge's (x, y, yaw)
+    standard deviations (x, y in the frame of the edge's first key scan) after that; chain_gate: the
+    chi-square probability beyond which a closure disagrees with the scaled chain (then unscaled between its
+    nodes); loop_closure: on/off and its settings; submaps."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
+    chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
+    chain_gate: float = 0.99
     loop_closure: bool = True
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
@@ -114,6 +128,9 @@ class GraphBackEnd:
         self.keys: list[KeyScan] = []
         self.travel: list[float] = []  # path length (m) at each node, from the front-end poses
         self.closures: list[Closure] = []
+        self.seq_cov: list[np.ndarray] = []  # sequential edges' covariances before chain_scale
+        self.unscaled = np.zeros(0, dtype=bool)  # per sequential edge: chain_scale taken off by a closure
+        self.chain_unscaled = 0  # closures that took chain_scale off the edges between their nodes
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -135,7 +152,9 @@ class GraphBackEnd:
             if key.fused_dims and prev.fused_dims:  # both placed by matches: fuse with their relative pose
                 m = self.config.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
                 cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
-            node = self.graph.add_node(rel, cov)
+            self.seq_cov.append(cov)
+            self.unscaled = np.append(self.unscaled, False)
+            node = self.graph.add_node(rel, self._scaled(len(self.seq_cov) - 1))
             self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
         self.keys.append(key)
         self.submaps.add(node, key, self.travel[-1])
@@ -144,12 +163,47 @@ class GraphBackEnd:
         new = self.closer.check(self.submaps, self.graph.poses, node, key, self.travel[-1])
         out = []
         for c in new:
+            self._check_chain(c.anchor, c.node, c.pose, c.cov, c.proj)
             self.graph.add_loop(c.anchor, c.node, c.pose, c.cov)
             out.append(Closure(c.anchor, c.node, c.pose, c.cov, self.keys[c.node].stamp, c.proj))
         if out:
             self.submaps.clear_cache()
         self.closures.extend(out)
         return out
+
+    def _scaled(self, i: int) -> np.ndarray:
+        """Covariance (3, 3) of sequential edge i (node i -> i + 1) as the graph holds it."""
+        if self.unscaled[i]:
+            return self.seq_cov[i]
+        s = np.diag(self.config.chain_scale)
+        return s @ self.seq_cov[i] @ s
+
+    def chain_covariance(self, a: int, b: int) -> np.ndarray:
+        """Covariance (3, 3) of the front end's relative pose of node b in node a's frame (a < b) that the
+        sequential edges between them imply, compounded as the graph holds them."""
+        cov, rel = np.zeros((3, 3)), np.zeros(3)
+        for i in range(a, b):  # hundreds of 3x3 steps, once per accepted closure
+            e = relative(self.keys[i].pose, self.keys[i + 1].pose)
+            ja, jb = compose_jacobians(rel, e)
+            cov = ja @ cov @ ja.T + jb @ self._scaled(i) @ jb.T
+            rel = compose(rel, e)
+        return cov
+
+    def _check_chain(self, a: int, b: int, pose: np.ndarray, cov: np.ndarray, proj: np.ndarray) -> None:
+        """Unscale the sequential edges between nodes a < b when the closure (node b at ``pose`` in a's
+        frame, ``cov``, constraining ``proj``) disagrees with the front end's chain between them."""
+        if self.unscaled[a:b].all():
+            return
+        r = np.asarray(pose, dtype=np.float64) - relative(self.keys[a].pose, self.keys[b].pose)
+        r[2] = float(wrap_angle(r[2]))
+        total = proj @ (self.chain_covariance(a, b) + cov) @ proj.T
+        d2 = float(r @ proj.T @ np.linalg.pinv(total) @ proj @ r)
+        dims = int(round(np.trace(proj)))
+        if d2 <= _CHI2[self.config.chain_gate][dims]:
+            return
+        self.unscaled[a:b] = True
+        self.chain_unscaled += 1
+        self.graph.reweight([self._scaled(i) for i in range(len(self.seq_cov))])
 
     def poses(self, refresh: bool = True) -> np.ndarray:
         """(N, 3) optimised key-scan poses (base, map frame). refresh=False: the solution as of the last

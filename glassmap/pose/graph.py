@@ -53,19 +53,24 @@ class PoseGraph:
 
     def __init__(self, first_pose: np.ndarray, first_cov: np.ndarray, loop_iterations: int = 3,
                  batch: int = 10) -> None:
+        self.loop_iterations = loop_iterations
+        self.batch = batch  # sequential edges handed to iSAM2 together (one update per batch)
+        self._first_cov = np.asarray(first_cov, dtype=np.float64).copy()
+        self.edges: list[Edge] = []
+        self._poses = np.asarray(first_pose, dtype=np.float64).reshape(1, 3).copy()
+        self._start()
+
+    def _start(self) -> None:
+        """A new iSAM2 holding the prior on node 0 only."""
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.001)
         params.relinearizeSkip = 1
         params.setFactorization("QR")  # robust to the poorly conditioned long chains of tight odometry edges
         self._isam = gtsam.ISAM2(params)
-        self.loop_iterations = loop_iterations
-        self.batch = batch  # sequential edges handed to iSAM2 together (one update per batch)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self.edges: list[Edge] = []
-        self._poses = np.asarray(first_pose, dtype=np.float64).reshape(1, 3).copy()
         g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._poses[0]), _noise(first_cov)))
+        g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._poses[0]), _noise(self._first_cov)))
         v = gtsam.Values()
         v.insert(0, gtsam.Pose2(*self._poses[0]))
         self._isam.update(g, v)
@@ -113,6 +118,29 @@ class PoseGraph:
         g.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*rel), _noise(to_tangent(rel, cov))))
         self.edges.append(Edge(a, b, rel.copy(), np.asarray(cov, dtype=np.float64).copy(), "loop"))
         self._isam.update(g, gtsam.Values())
+        for _ in range(self.loop_iterations):
+            self._isam.update()
+        self._read()
+
+    def reweight(self, sequential_covs: list[np.ndarray]) -> None:
+        """Give the sequential edges new covariances (one (3, 3) per sequential edge, in order) and solve the
+        whole graph again from the current solution (one batch update: used rarely, not per key scan)."""
+        seq = [i for i, e in enumerate(self.edges) if e.kind == "sequential"]
+        if len(sequential_covs) != len(seq):
+            raise PoseGraphError(f"{len(sequential_covs)} covariances for {len(seq)} sequential edges")
+        for i, cov in zip(seq, sequential_covs):
+            e = self.edges[i]
+            self.edges[i] = Edge(e.a, e.b, e.rel, np.asarray(cov, dtype=np.float64).copy(), e.kind)
+        self._flush()
+        guess = self._isam.calculateEstimate()
+        self._start()
+        g = gtsam.NonlinearFactorGraph()
+        for e in self.edges:
+            g.add(gtsam.BetweenFactorPose2(e.a, e.b, gtsam.Pose2(*e.rel), _noise(to_tangent(e.rel, e.cov))))
+        v = gtsam.Values()
+        for i in range(1, len(self)):
+            v.insert(i, guess.atPose2(i))
+        self._isam.update(g, v)
         for _ in range(self.loop_iterations):
             self._isam.update()
         self._read()

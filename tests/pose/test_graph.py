@@ -57,3 +57,19 @@ def test_relative_edge_convention_matches_motion_relative():
     g.add_node(relative(a, b), np.diag([1e-4, 1e-4, 1e-4]))
     np.testing.assert_allclose(g.refresh()[1], b, atol=1e-9)
     np.testing.assert_allclose(compose(a, relative(a, b)), b, atol=1e-12)
+
+
+def test_reweighted_edges_give_the_solution_of_a_graph_built_with_them():
+    bias = np.array([0.0, 0.0, np.radians(3.0)])
+    rels = [r + bias for r in SQUARE]
+    tight, loose = np.diag([1e-6, 1e-6, 1e-8]), np.diag([1e-4, 1e-4, 1e-4])
+    g = _chain(rels, tight)
+    g.add_loop(0, 4, np.zeros(3), np.diag([1e-6, 1e-6, 1e-6]))
+    stiff = g.poses
+    g.reweight([loose] * 4)
+    fresh = _chain(rels, loose)
+    fresh.add_loop(0, 4, np.zeros(3), np.diag([1e-6, 1e-6, 1e-6]))
+    np.testing.assert_allclose(g.poses, fresh.poses, atol=1e-6)
+    assert np.abs(g.poses - stiff).max() > 0.01  # the weights moved the solution
+    with pytest.raises(PoseGraphError, match="sequential edges"):
+        g.reweight([loose] * 3)
