@@ -26,6 +26,7 @@ runtime runs it in a worker thread so no scan waits for it.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +39,8 @@ from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import MotionNoise, compose, compose_jacobians, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.types import PoseEstimate, wrap_angle
+
+log = logging.getLogger(__name__)
 
 
 # chi-square points by probability and degrees of freedom (BackEndConfig.chain_gate)
@@ -201,6 +204,9 @@ class GraphBackEnd:
         dims = int(round(np.trace(proj)))
         if d2 <= _CHI2[self.config.chain_gate][dims]:
             return
+        log.info("loop closure %d -> %d disagrees with the front end's chain between them (squared distance %.1f > "
+                 "%.1f): the chain's %d edges there are taken as a random walk", a, b, d2,
+                 _CHI2[self.config.chain_gate][dims], b - a)
         self.unscaled[a:b] = True
         self.chain_unscaled += 1
         self.graph.reweight([self._scaled(i) for i in range(len(self.seq_cov))])

@@ -35,7 +35,8 @@ class Trajectory:
     corrected (S, 3) each scan's pose as the back end corrected it at that time (online), optimised (S, 3)
     after the whole run (each scan moved with its last key scan), closures the accepted loop closures,
     closure_truth_error (C, 2) each closure's error against the truth (m, rad), t_backend (K,) seconds of the
-    back end per key scan, closure_checks: loop-closure matches tried."""
+    back end per key scan, closure_checks: loop-closure matches tried, chain_unscaled: closures that took
+    ``BackEndConfig.chain_scale`` off the sequential edges between their nodes."""
 
     stamps: np.ndarray
     poses: np.ndarray
@@ -55,6 +56,7 @@ class Trajectory:
     closure_truth_error: np.ndarray | None = None
     t_backend: np.ndarray | None = None
     closure_checks: int = 0
+    chain_unscaled: int = 0
     lost_events: int = 0
 
 
@@ -92,6 +94,7 @@ class RunMetrics:
     lc_checks: int = 0
     lc_closures: int = 0
     lc_false_closures: int = 0
+    lc_chain_unscaled: int = 0
     lc_backend_ms_mean: float = float("nan")
     lc_backend_ms_max: float = float("nan")
     gated: int = 0  # key-scan matches rejected by the gate
@@ -200,6 +203,7 @@ def _add_backend(traj: Trajectory, backend, run, key_scan: np.ndarray, last_key:
     traj.closure_truth_error = err
     traj.t_backend = np.asarray(t_back)
     traj.closure_checks = backend.closer.stats.checks
+    traj.chain_unscaled = backend.chain_unscaled
 
 
 def _odometry_in_map(run, start: np.ndarray) -> np.ndarray:
@@ -282,6 +286,7 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
                   lc_opt_ate_rmse=float(np.sqrt(np.mean(dopt ** 2))), lc_opt_ate_max=float(dopt.max()),
                   lc_checks=int(traj.closure_checks), lc_closures=len(traj.closures),
                   lc_false_closures=int(np.sum((ce[:, 0] > FALSE_CLOSURE_XY) | (ce[:, 1] > FALSE_CLOSURE_YAW))),
+                  lc_chain_unscaled=int(traj.chain_unscaled),
                   lc_backend_ms_mean=float(tb.mean() * 1e3), lc_backend_ms_max=float(tb.max() * 1e3))
     return RunMetrics(
         world=run.world_name, route=run.route_name, seed=int(run.seed), scans=s,

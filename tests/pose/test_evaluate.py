@@ -38,3 +38,16 @@ def test_online_glass_map_registers_with_the_runtimes_sigma(monkeypatch):
     assert len(sources) == len(traj.stamps)
     assert set(sources) == {MappingConfig().registration_sigma}
     assert np.nanmax(est.occupancy.grid["glass"]) > 0.5  # the facade's glass was mapped
+
+
+def test_a_run_with_the_pose_graph_reports_its_figures():
+    """With a back end the metrics carry the loop-closure columns (no loop on 4 m: no closure, the chain
+    left scaled, the optimised poses those of the front end)."""
+    from glassmap.pose.backend import GraphBackEnd
+
+    run = simulate_run(load_world("office"), ROUTE, seed=3)
+    traj, _ = run_estimator(run, backend=GraphBackEnd())
+    m = metrics(traj, run).as_dict()
+    assert m["lc_closures"] == 0 and m["lc_false_closures"] == 0 and m["lc_chain_unscaled"] == 0
+    assert m["lc_checks"] >= 0 and np.isfinite(m["lc_opt_ate_rmse"])
+    assert abs(m["lc_opt_ate_rmse"] - m["ate_rmse"]) < 1e-3
