@@ -132,7 +132,7 @@ class GraphBackEnd:
         self.travel: list[float] = []  # path length (m) at each node, from the front-end poses
         self.closures: list[Closure] = []
         self.seq_cov: list[np.ndarray] = []  # sequential edges' covariances before chain_scale
-        self.unscaled = np.zeros(0, dtype=bool)  # per sequential edge: chain_scale taken off by a closure
+        self.unscaled: list[bool] = []  # per sequential edge: chain_scale taken off by a closure
         self.chain_unscaled = 0  # closures that took chain_scale off the edges between their nodes
 
     def __len__(self) -> int:
@@ -156,7 +156,7 @@ class GraphBackEnd:
                 m = self.config.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
                 cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
             self.seq_cov.append(cov)
-            self.unscaled = np.append(self.unscaled, False)
+            self.unscaled.append(False)
             node = self.graph.add_node(rel, self._scaled(len(self.seq_cov) - 1))
             self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
         self.keys.append(key)
@@ -195,7 +195,7 @@ class GraphBackEnd:
     def _check_chain(self, a: int, b: int, pose: np.ndarray, cov: np.ndarray, proj: np.ndarray) -> None:
         """Unscale the sequential edges between nodes a < b when the closure (node b at ``pose`` in a's
         frame, ``cov``, constraining ``proj``) disagrees with the front end's chain between them."""
-        if self.unscaled[a:b].all():
+        if all(self.unscaled[a:b]):
             return
         r = np.asarray(pose, dtype=np.float64) - relative(self.keys[a].pose, self.keys[b].pose)
         r[2] = float(wrap_angle(r[2]))
@@ -207,7 +207,7 @@ class GraphBackEnd:
         log.info("loop closure %d -> %d disagrees with the front end's chain between them (squared distance %.1f > "
                  "%.1f): the chain's %d edges there are taken as a random walk", a, b, d2,
                  _CHI2[self.config.chain_gate][dims], b - a)
-        self.unscaled[a:b] = True
+        self.unscaled[a:b] = [True] * (b - a)
         self.chain_unscaled += 1
         self.graph.reweight([self._scaled(i) for i in range(len(self.seq_cov))])
 

@@ -174,7 +174,8 @@ def _line(r: dict) -> str:
         lc = (f"\n    with loop closure: ATE {100 * r['lc_ate_rmse']:5.1f} cm online (max {100 * r['lc_ate_max']:5.1f}), "
               f"{100 * r['lc_opt_ate_rmse']:5.1f} cm optimised (max {100 * r['lc_opt_ate_max']:5.1f}), final drift "
               f"{100 * r['lc_final_drift']:5.1f} cm | closures {r['lc_closures']} ({r['lc_false_closures']} false) "
-              f"of {r['lc_checks']} checks, {r['lc_chain_unscaled']} unscaled the chain | back end {r['lc_backend_ms_mean']:.1f} ms mean per key scan "
+              f"of {r['lc_checks']} checks, {r['lc_chain_unscaled']} unscaled the chain | back end "
+              f"{r['lc_backend_ms_mean']:.1f} ms mean per key scan "
               f"(max {r['lc_backend_ms_max']:.0f})")
     return (f"{r['world']:15s} seed {r['seed']:3d}  ATE {100 * r['ate_rmse']:5.1f} cm (max {100 * r['ate_max']:5.1f}) "
             f"drift {100 * r['final_drift']:5.1f} cm | odometry ATE {100 * r['odom_ate_rmse']:6.1f} cm drift "
