@@ -43,10 +43,6 @@ from glassmap.types import PoseEstimate, wrap_angle
 log = logging.getLogger(__name__)
 
 
-# chi-square points by probability and degrees of freedom (BackEndConfig.chain_gate)
-_CHI2 = {0.99: {1: 6.63, 2: 9.21, 3: 11.34}, 0.999: {1: 10.83, 2: 13.82, 3: 16.27}}
-
-
 @dataclass(frozen=True)
 class BackEndConfig:
     """motion: the odometry noise model of odometry edges; match_scale: multiplies the covariance of
@@ -64,6 +60,10 @@ class BackEndConfig:
     loop_closure: bool = True
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.chain_gate < 1.0:
+            raise ValueError(f"chain_gate is a chi-square probability in (0, 1), got {self.chain_gate}")
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,9 @@ class GraphBackEnd:
         self.seq_cov: list[np.ndarray] = []  # sequential edges' covariances before chain_scale
         self.unscaled: list[bool] = []  # per sequential edge: chain_scale taken off by a closure
         self.chain_unscaled = 0  # closures that took chain_scale off the edges between their nodes
+        from scipy.stats import chi2
+
+        self._chain_gate = {d: float(chi2.ppf(config.chain_gate, d)) for d in (1, 2, 3)}  # by directions
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -201,12 +204,11 @@ class GraphBackEnd:
         r[2] = float(wrap_angle(r[2]))
         total = proj @ (self.chain_covariance(a, b) + cov) @ proj.T
         d2 = float(r @ proj.T @ np.linalg.pinv(total) @ proj @ r)
-        dims = int(round(np.trace(proj)))
-        if d2 <= _CHI2[self.config.chain_gate][dims]:
+        gate = self._chain_gate[int(round(np.trace(proj)))]
+        if d2 <= gate:
             return
         log.info("loop closure %d -> %d disagrees with the front end's chain between them (squared distance %.1f > "
-                 "%.1f): the chain's %d edges there are taken as a random walk", a, b, d2,
-                 _CHI2[self.config.chain_gate][dims], b - a)
+                 "%.1f): the chain's %d edges there are taken as a random walk", a, b, d2, gate, b - a)
         self.unscaled[a:b] = [True] * (b - a)
         self.chain_unscaled += 1
         self.graph.reweight([self._scaled(i) for i in range(len(self.seq_cov))])

@@ -167,3 +167,10 @@ def test_candidates_that_constrain_only_part_of_the_pose_are_compared_only_there
     a = cand(4, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
     assert closer.agree(a, cand(6, (0.5, 0.0, 0.0), (1.6, 0.01, 0.0)), poses)  # 10 cm along it: not observed
     assert not closer.agree(a, cand(6, (0.5, 0.0, 0.0), (1.5, 0.1, 0.0)), poses)  # 10 cm across it
+
+
+def test_a_chain_gate_outside_0_1_is_refused():
+    import pytest
+
+    with pytest.raises(ValueError, match="chain_gate"):
+        BackEndConfig(chain_gate=1.5)
