@@ -39,7 +39,9 @@ class BenchmarkConfig:
     of the paper's experiment per world and seed, with sigma_xy (m) / sigma_theta_deg of pose error;
     demo_speed: the demo's speed-up over real time; demo_duration: emulated seconds after which the demo
     stops even if the route is not done (None: when it is done); demo_loop_closure: run the demo with the
-    pose graph (its final estimate is then the one the graph corrected); parts: which of PARTS to run."""
+    pose graph (its final estimate is then the one the graph corrected); pose_loop_closure: run the pose graph
+    behind the estimator in the pose part as well (its corrected estimate's ATE and consistency are then
+    reported beside the front end's); parts: which of PARTS to run."""
 
     generated: int = 20
     worlds: tuple[str, ...] = BUILTIN
@@ -52,6 +54,7 @@ class BenchmarkConfig:
     demo_speed: float = 2.0
     demo_duration: float | None = None
     demo_loop_closure: bool = False
+    pose_loop_closure: bool = False
     parts: tuple[str, ...] = PARTS
     out_dir: str = "out/eval"
 
@@ -182,10 +185,16 @@ def _pose(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     from glassmap.pose.evaluate import evaluate_run
     from glassmap.sim.world import load_world
 
-    m = evaluate_run(task.path, _route(load_world(task.path), cfg), task.seed)
+    backend = None
+    if cfg.pose_loop_closure:
+        from glassmap.pose.backend import BackEndConfig
+
+        backend = BackEndConfig()
+    m = evaluate_run(task.path, _route(load_world(task.path), cfg), task.seed, backend_config=backend)
     return [dict(ate_rmse=m.ate_rmse, ate_max=m.ate_max, final_drift=m.final_drift, nees_mean=m.nees_mean,
                  inside_95=m.inside_95, yaw_rmse_deg=m.yaw_rmse_deg, odom_ate_rmse=m.odom_ate_rmse,
-                 length_m=m.length_m, scans=m.scans)]
+                 length_m=m.length_m, scans=m.scans, lc_ate_rmse=m.lc_ate_rmse, lc_nees_mean=m.lc_nees_mean,
+                 lc_inside_95=m.lc_inside_95, lc_closures=m.lc_closures, lc_false_closures=m.lc_false_closures)]
 
 
 def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
@@ -295,6 +304,8 @@ METRICS: dict[str, tuple[str, str | None, str, bool]] = {
     "pose_final_drift": ("pose", None, "final_drift", False),
     "pose_nees_mean": ("pose", None, "nees_mean", False),
     "pose_inside_95": ("pose", None, "inside_95", True),
+    "pose_lc_nees_mean": ("pose", None, "lc_nees_mean", False),
+    "pose_lc_inside_95": ("pose", None, "lc_inside_95", True),
     "demo_error": ("demo", None, "error", False),
     "demo_glass_recall": ("demo", None, "glass_recall", True),
     "demo_final_sigma": ("demo", None, "final_sigma", False),
@@ -463,6 +474,8 @@ _LABELS = {
     "pose_final_drift": "pose final drift (m)",
     "pose_nees_mean": "pose mean NEES (ideal 3)",
     "pose_inside_95": "pose share inside the 95 % bound",
+    "pose_lc_nees_mean": "pose with the pose graph: corrected estimate's mean NEES",
+    "pose_lc_inside_95": "pose with the pose graph: share inside the 95 % bound",
     "demo_error": "demo per-cell error",
     "demo_glass_recall": "demo glass recall",
     "demo_final_sigma": "demo final position error (sigma)",
@@ -474,6 +487,7 @@ _WORLD_COLUMNS = [("clf_glass_precision", "clf prec."), ("clf_glass_recall", "cl
                   ("clf_calibration_error", "clf ECE"), ("map_error_true_poses", "map err. true poses"),
                   ("exp_direct_mean", "direct"), ("exp_robust3_mean", "robust 3x3"), ("exp_robust5_mean", "robust 5x5"),
                   ("pose_ate_rmse", "ATE (m)"), ("pose_nees_mean", "NEES"), ("pose_inside_95", "in 95 %"),
+                  ("pose_lc_nees_mean", "NEES (graph)"), ("pose_lc_inside_95", "in 95 % (graph)"),
                   ("demo_error", "demo err."), ("demo_glass_recall", "demo glass recall"),
                   ("demo_final_sigma", "demo final sigma"), ("demo_silent_divergence", "demo diverged")]
 
@@ -543,6 +557,8 @@ def config_from_args(args) -> BenchmarkConfig:
         changes["demo_speed"] = args.demo_speed
     if args.demo_loop_closure:
         changes["demo_loop_closure"] = True
+    if args.pose_loop_closure:
+        changes["pose_loop_closure"] = True
     if args.classifier_poses is not None:
         changes["classifier_poses"] = args.classifier_poses
     if args.out is not None:
@@ -573,6 +589,9 @@ def add_arguments(p) -> None:
                    "the front end's. Every demo run reports that estimate's error in sigma of its covariance and "
                    "whether it ended more than 3 sigma off without the runtime having stopped on a lost track "
                    "(issue 20, item 0). Demos run in real time (times --demo-speed): use --workers 1")
+    p.add_argument("--pose-loop-closure", action="store_true", help="the pose part also runs the pose graph behind "
+                   "the estimator and reports the corrected estimate's ATE, mean NEES and share inside the 95 %% "
+                   "bound beside the front end's (per_run.csv: lc_*; issue 20, item 1)")
     p.add_argument("--classifier-poses", type=int, default=None, help="scans of labelled beams per world and seed "
                    "(default 200, --quick 60)")
     add_out(p, None, "output directory; None = out/eval (--quick: out/eval-quick)")

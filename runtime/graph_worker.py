@@ -39,7 +39,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams
 from glassmap.mapping import MapCopy, MapperConfig
-from glassmap.pose.backend import BackEndConfig
+from glassmap.pose.backend import BackEndConfig, GraphCorrection
 from glassmap.pose.keyscan import KeyScan
 
 log = logging.getLogger(__name__)
@@ -91,7 +91,7 @@ class GraphWorker:
                  mapper: MapperConfig | None = None, rebuild_period: float = 5.0, in_process: bool = False) -> None:
         self._settings = _Settings(config, sigma_hit, occupancy, resolution, mapper, rebuild_period)
         self._lock = threading.Condition()
-        self._correction = np.zeros(3)
+        self._correction = None  # the back end's latest GraphCorrection (None before its first key scan)
         self._snapshot = GraphSnapshot(np.zeros(0), np.zeros((0, 3)), 0, None, 0)
         self._submitted = 0
         self._done = 0  # key scans the back end has taken in
@@ -154,11 +154,11 @@ class GraphWorker:
             self._submitted += 1
         self._inbox.put(("key", compact(key)))
 
-    def latest_correction(self) -> tuple[np.ndarray, int, int]:
-        """(3,) the latest correction (compose(correction, front-end pose) = corrected pose), the loop
-        closures accepted up to it, and the key scans submitted since that are not yet in the graph."""
+    def latest_correction(self) -> tuple[GraphCorrection | None, int]:
+        """The back end's latest :class:`~glassmap.pose.backend.GraphCorrection` (None before it has taken in a
+        key scan) and the key scans submitted since that are not yet in the graph."""
         with self._lock:
-            return self._correction.copy(), self.closures, self._submitted - self._done
+            return self._correction, self._submitted - self._done
 
     def snapshot(self) -> GraphSnapshot:
         with self._lock:
@@ -230,7 +230,8 @@ class GraphWorker:
                 return
             kind = msg[0]
             if kind == "done":
-                _, done, corr, closures, busy = msg
+                _, done, corr, busy = msg
+                closures = corr.closures
                 with self._lock:
                     self._done, self._correction, self.busy_time = done, corr, busy
                     if closures > self.closures:
@@ -292,7 +293,7 @@ REBUILD_STEP = 20  # key scans a periodic map rebuild integrates between looks a
 
 def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> None:
     """The worker's loop: messages ("key", KeyScan), ("finish", token) or None (stop) from ``inbox``;
-    ("done", n, correction, closures, busy s), ("maps", token, stamps, poses, accepted closures, grid, glass, s to build them),
+    ("done", n, GraphCorrection, busy s), ("maps", token, stamps, poses, accepted closures, grid, glass, s to build them),
     ("error", text), ("stopped",) to ``outbox``. ``parent_pid``: in a process, end when that process is gone."""
     if parent_pid is not None:
         _process_setup(parent_pid)
@@ -363,7 +364,7 @@ def serve(inbox, outbox, settings: _Settings, parent_pid: int | None = None) -> 
                 if be.closer.stats.checks:
                     loaded_now("check")
                 busy += time.perf_counter() - t
-                outbox.put(("done", len(be), be.correction(), len(be.closures), busy))
+                outbox.put(("done", len(be), be.latest(), busy))
                 # rebuild the corrected maps when caught up, at most once per period (closures come in bursts)
                 if (rebuild is None and dirty and _empty(inbox)
                         and time.monotonic() - last_rebuild >= settings.rebuild_period):

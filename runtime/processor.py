@@ -68,7 +68,7 @@ class MappingProcessor:
 
             backend = BackEndConfig()
             self.graph = GraphWorker(backend, ecfg.likelihood.sigma_hit, ecfg.occupancy, mapper=mcfg)
-            self._closure_sigma = backend.closure.cov_floor
+            self._backend_config = backend
         self.graph_lag = 0  # key scans the pose graph had not taken in when the last corrected estimate was made
         self.latest_odom: Odometry | None = None
         self.scans = 0
@@ -126,8 +126,8 @@ class MappingProcessor:
                 self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
             from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
-            correction, closures, self.graph_lag = self.graph.latest_correction()
-            corrected = corrected_estimate(est, correction, closures, self._closure_sigma)
+            correction, self.graph_lag = self.graph.latest_correction()
+            corrected = corrected_estimate(est, correction, self._backend_config)
         self.scans += 1
         st = self.estimator.stats
         timings = {"pose": st.t_core, "likelihood_field": st.t_field, "occupancy": st.t_integrate,

@@ -24,13 +24,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from glassmap.pose.backend import BackEndConfig, GraphBackEnd, corrected_estimate
+from glassmap.pose.backend import BackEndConfig, GraphBackEnd
 from glassmap.pose.estimator import EstimatorConfig
 from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, run_estimator
 from glassmap.pose.motion import relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.sim.dataset import simulate_run
-from glassmap.types import PoseEstimate, wrap_angle
 
 
 def _rematch(be: GraphBackEnd, truth: np.ndarray, true_poses: bool) -> list[float]:
@@ -85,11 +84,8 @@ def main() -> int:
             errs = np.array([c.error(truth[c.anchor], truth[c.node]) for c in be.closures]).reshape(-1, 2)
             full = np.array([np.allclose(c.proj, np.eye(3)) for c in be.closures], dtype=bool)
             false = int(np.sum((errs[:, 0] > FALSE_CLOSURE_XY) | (errs[:, 1] > FALSE_CLOSURE_YAW)))
-            k = len(traj.stamps) - 1
-            est = PoseEstimate(float(traj.stamps[k]), *traj.poses[k], covariance=traj.covs[k])
-            cor = corrected_estimate(est, be.correction(), len(be.closures), cfg.closure.cov_floor)
-            d = (cor.pose - traj.truth[k])[:2]
-            sigma = float(np.sqrt(d @ np.linalg.solve(cor.covariance[:2, :2], d)))
+            d = (traj.corrected[-1] - traj.truth[-1])[:2]  # the corrected estimate at the end
+            sigma = float(np.sqrt(d @ np.linalg.solve(traj.corrected_covs[-1][:2, :2], d)))
             graph = np.hypot(*(be.poses()[:, :2] - truth[:, :2]).T)
             ms = 1e3 * np.asarray(seconds)
             full_rms = 100 * np.sqrt(np.mean(errs[full, 0] ** 2)) if full.any() else float("nan")

@@ -20,7 +20,8 @@ builds; the back end takes each key scan it hands over (``PoseEstimator.last_key
   that the closure's correction is spread along them as a random walk instead of bending the stiff chain.
 
 The corrected pose of anything the front end places is ``correct(pose)``: the front-end pose moved by the
-correction of the newest node (graph solution (+) front-end pose^-1). The back end is pure computation; the
+correction of the newest node (graph solution (+) front-end pose^-1); :func:`corrected_estimate` gives it with
+its covariance from the graph (``latest``). The back end is pure computation; the
 runtime runs it in a worker thread so no scan waits for it.
 """
 
@@ -104,19 +105,36 @@ def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: 
     return 0.5 * (out + out.T)
 
 
-def corrected_estimate(est: PoseEstimate, correction: np.ndarray, closures: int,
-                       closure_sigma: tuple[float, float, float]) -> PoseEstimate:
-    """A front-end estimate (base pose, map frame) moved by the pose graph's ``correction``
-    (:meth:`GraphBackEnd.correction`), with its covariance there: the front end's, turned with the
-    correction, plus, once ``closures`` > 0, the closures' own uncertainty ``closure_sigma`` ((x, y, yaw)
-    standard deviations, m, m, rad; ``LoopClosureConfig.cov_floor``). The front end's covariance alone would
-    claim the accuracy of the map it matched, which the correction has moved by the closures; a closure
-    against a few metres of submap is itself about that far from the truth."""
-    _, turn = compose_jacobians(correction, est.pose)
-    cov = turn @ np.asarray(est.covariance, dtype=np.float64) @ turn.T
-    if closures > 0:
-        cov = cov + np.diag(np.square(closure_sigma))
-    x, y, yaw = compose(correction, est.pose)
+@dataclass(frozen=True)
+class GraphCorrection:
+    """The pose graph's word on the front end's poses after its newest node: ``correction`` (3,), the rigid
+    transform taking front-end poses near that node to the corrected frame (:meth:`GraphBackEnd.correction`);
+    the node's front-end pose ``front`` (3,, base, map frame) and ``stamp`` (s); ``cov`` (3, 3) its marginal
+    covariance in the graph (map frame, x, y, yaw: :meth:`~glassmap.pose.graph.PoseGraph.newest_covariance`),
+    and the loop closures accepted up to it."""
+
+    correction: np.ndarray
+    front: np.ndarray
+    stamp: float
+    cov: np.ndarray
+    closures: int
+
+
+def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: BackEndConfig) -> PoseEstimate:
+    """A front-end estimate (base pose, map frame) moved by the pose graph's correction: the newest node's
+    optimised pose composed with the front end's motion since that node. Its covariance is the node's
+    marginal carried along that motion, plus the motion's own odometry noise (``config.motion`` over the time
+    since the node, and ``config.min_sigma``), as an unscaled sequential edge to the current pose would add.
+    The front end's covariance is not used: it is relative to the map the front end built, which the graph's
+    closures have moved. ``corr`` None (the graph holds no node yet): ``est`` unchanged."""
+    if corr is None:
+        return est
+    node = compose(corr.correction, corr.front)
+    rel = relative(corr.front, est.pose)
+    ja, jb = compose_jacobians(node, rel)
+    q = config.motion.covariance(rel, max(est.stamp - corr.stamp, 0.0)) + np.diag(np.square(config.min_sigma))
+    cov = ja @ np.asarray(corr.cov, dtype=np.float64) @ ja.T + jb @ q @ jb.T
+    x, y, yaw = compose(corr.correction, est.pose)
     return PoseEstimate(est.stamp, float(x), float(y), float(yaw), 0.5 * (cov + cov.T), est.status)
 
 
@@ -228,6 +246,15 @@ class GraphBackEnd:
         last = self.graph.poses[-1]
         front = self.keys[-1].pose
         return compose(last, relative(front, np.zeros(3)))
+
+    def latest(self) -> GraphCorrection | None:
+        """The correction after the newest node with that node's marginal (:class:`GraphCorrection`); None
+        before the first key scan."""
+        if self.graph is None:
+            return None
+        key = self.keys[-1]
+        return GraphCorrection(self.correction(), key.pose.copy(), key.stamp, self.graph.newest_covariance(),
+                               len(self.closures))
 
     def stamps(self) -> np.ndarray:
         """(N,) stamps (s) of the key scans (the nodes)."""

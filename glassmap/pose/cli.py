@@ -173,7 +173,8 @@ def _line(r: dict) -> str:
     if r.get("lc_ate_rmse") == r.get("lc_ate_rmse"):  # a back end ran (not NaN)
         lc = (f"\n    with loop closure: ATE {100 * r['lc_ate_rmse']:5.1f} cm online (max {100 * r['lc_ate_max']:5.1f}), "
               f"{100 * r['lc_opt_ate_rmse']:5.1f} cm optimised (max {100 * r['lc_opt_ate_max']:5.1f}), final drift "
-              f"{100 * r['lc_final_drift']:5.1f} cm | closures {r['lc_closures']} ({r['lc_false_closures']} false) "
+              f"{100 * r['lc_final_drift']:5.1f} cm, mean NEES {r['lc_nees_mean']:.2f} ({100 * r['lc_inside_95']:.0f} % inside "
+              f"the 95 % bound) | closures {r['lc_closures']} ({r['lc_false_closures']} false) "
               f"of {r['lc_checks']} checks, {r['lc_chain_unscaled']} unscaled the chain | back end "
               f"{r['lc_backend_ms_mean']:.1f} ms mean per key scan "
               f"(max {r['lc_backend_ms_max']:.0f})")

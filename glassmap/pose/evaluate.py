@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from glassmap.pose.backend import corrected_estimate
 from glassmap.pose.estimator import EstimatorConfig, PoseEstimator
 from glassmap.pose.motion import compose, relative
 from glassmap.types import wrap_angle
@@ -32,7 +33,8 @@ class Trajectory:
     truth (S, 3), odom (S, 3) raw odometry mapped into the map frame from the true start pose,
     t_core (S,) seconds of prediction + matching + covariance + fusion, t_field / t_integrate (S,), key (S,)
     bool: key scans (matched and integrated; see EstimatorConfig.keyframe_*). With a pose-graph back end:
-    corrected (S, 3) each scan's pose as the back end corrected it at that time (online), optimised (S, 3)
+    corrected (S, 3) each scan's pose as the back end corrected it at that time (online) and corrected_covs
+    (S, 3, 3) its covariance (``corrected_estimate``), optimised (S, 3)
     after the whole run (each scan moved with its last key scan), closures the accepted loop closures,
     closure_truth_error (C, 2) each closure's error against the truth (m, rad), t_backend (K,) seconds of the
     back end per key scan, closure_checks: loop-closure matches tried, chain_unscaled: closures that took
@@ -51,6 +53,7 @@ class Trajectory:
     gated: int
     key: np.ndarray
     corrected: np.ndarray | None = None
+    corrected_covs: np.ndarray | None = None
     optimised: np.ndarray | None = None
     closures: list | None = None
     closure_truth_error: np.ndarray | None = None
@@ -89,6 +92,8 @@ class RunMetrics:
     lc_ate_rmse: float = float("nan")
     lc_ate_max: float = float("nan")
     lc_final_drift: float = float("nan")
+    lc_nees_mean: float = float("nan")  # the corrected estimate's, against its covariance
+    lc_inside_95: float = float("nan")
     lc_opt_ate_rmse: float = float("nan")
     lc_opt_ate_max: float = float("nan")
     lc_checks: int = 0
@@ -145,6 +150,8 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     t_core, t_field, t_int = np.zeros(s), np.zeros(s), np.zeros(s)
     key = np.zeros(s, dtype=bool)
     corrected = np.zeros((s, 3)) if backend is not None else None
+    corrected_covs = np.zeros((s, 3, 3)) if backend is not None else None
+    latest = None  # the back end's GraphCorrection after its newest key scan
     last_key = np.zeros(s, dtype=np.int64)
     key_scan: list[int] = []
     t_back: list[float] = []
@@ -173,8 +180,10 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
                 backend.add(est.last_key_scan)
                 t_back.append(time.perf_counter() - t)
                 key_scan.append(i)
+                latest = backend.latest()
             last_key[k] = len(backend) - 1
-            corrected[k] = backend.correct(e.pose)
+            c = corrected_estimate(e, latest, backend.config)
+            corrected[k], corrected_covs[k] = c.pose, c.covariance
         if on_scan is not None:
             on_scan(i, scan, e, est)
     odom_map = _odometry_in_map(run, start)[kept]
@@ -184,6 +193,7 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
                       key=key, lost_events=est.stats.lost_events)
     if backend is not None:
         _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, t_back)
+        traj.corrected_covs = corrected_covs
     return traj, est
 
 
@@ -265,6 +275,11 @@ def write_glass_oracle(est: PoseEstimator, run, world=None) -> None:
     g["glass"][cells[:, 1], cells[:, 0]] = np.float32(np.log(0.95 / 0.05))
 
 
+def _nees(err: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """(S,) squared Mahalanobis distances of errors (S, 3) under covariances (S, 3, 3)."""
+    return np.einsum("si,si->s", err, np.linalg.solve(covs, err[:, :, None])[:, :, 0])
+
+
 def metrics(traj: Trajectory, run) -> RunMetrics:
     """Trajectory and consistency metrics of one run."""
     e = traj.poses - traj.truth
@@ -272,17 +287,21 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
     d = np.hypot(e[:, 0], e[:, 1])
     eo = traj.odom - traj.truth
     do = np.hypot(eo[:, 0], eo[:, 1])
-    nees = np.einsum("si,si->s", e, np.linalg.solve(traj.covs, e[:, :, None])[:, :, 0])
+    nees = _nees(e, traj.covs)
     steps = np.diff(traj.truth[:, :2], axis=0)
     sig = np.sqrt(np.linalg.eigvalsh(traj.covs[:, :2, :2])[:, 1])
     s = len(traj.stamps)
     lc = {}
     if traj.corrected is not None:
-        dc = np.hypot(*(traj.corrected[:, :2] - traj.truth[:, :2]).T)
+        ec = traj.corrected - traj.truth
+        ec[:, 2] = wrap_angle(ec[:, 2])
+        dc = np.hypot(ec[:, 0], ec[:, 1])
+        nees_c = _nees(ec, traj.corrected_covs)
         dopt = np.hypot(*(traj.optimised[:, :2] - traj.truth[:, :2]).T)
         ce = traj.closure_truth_error
         tb = traj.t_backend if traj.t_backend is not None and traj.t_backend.size else np.zeros(1)
         lc = dict(lc_ate_rmse=float(np.sqrt(np.mean(dc ** 2))), lc_ate_max=float(dc.max()), lc_final_drift=float(dc[-1]),
+                  lc_nees_mean=float(nees_c.mean()), lc_inside_95=float(np.mean(nees_c <= CHI2_3DOF_95)),
                   lc_opt_ate_rmse=float(np.sqrt(np.mean(dopt ** 2))), lc_opt_ate_max=float(dopt.max()),
                   lc_checks=int(traj.closure_checks), lc_closures=len(traj.closures),
                   lc_false_closures=int(np.sum((ce[:, 0] > FALSE_CLOSURE_XY) | (ce[:, 1] > FALSE_CLOSURE_YAW))),

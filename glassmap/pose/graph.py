@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from glassmap.pose.motion import compose
+from glassmap.pose.motion import compose, compose_jacobians
 
 
 class PoseGraphError(RuntimeError):
@@ -62,6 +62,7 @@ class PoseGraph:
 
     def _start(self) -> None:
         """A new iSAM2 holding the prior on node 0 only."""
+        self._held = None  # (node, its map-frame marginal) of the newest node iSAM2 holds (newest_covariance)
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.001)
         params.relinearizeSkip = 1
@@ -104,6 +105,7 @@ class PoseGraph:
         """Hand the buffered sequential edges to iSAM2 (one update)."""
         if self._new_values.size():
             self._isam.update(self._new_factors, self._new_values)
+            self._held = None
             self._new_factors = gtsam.NonlinearFactorGraph()
             self._new_values = gtsam.Values()
 
@@ -120,6 +122,7 @@ class PoseGraph:
         self._isam.update(g, gtsam.Values())
         for _ in range(self.loop_iterations):
             self._isam.update()
+        self._held = None
         self._read()
 
     def reweight(self, sequential_covs: list[np.ndarray]) -> None:
@@ -143,6 +146,7 @@ class PoseGraph:
         self._isam.update(g, v)
         for _ in range(self.loop_iterations):
             self._isam.update()
+        self._held = None
         self._read()
 
     def _read(self) -> None:
@@ -166,3 +170,19 @@ class PoseGraph:
             raise PoseGraphError(f"no node {i} (0..{len(self) - 1})")
         self._flush()
         return np.asarray(self._isam.marginalCovariance(i))
+
+    def newest_covariance(self) -> np.ndarray:
+        """Marginal covariance (3, 3) of the newest node in the map frame (x, y, yaw): iSAM2's marginal of the
+        newest node it holds, compounded along the sequential edges not yet handed to it (they form a chain
+        from that node, so this is its marginal to first order). Leaves the pending batch where it is, so
+        reading it does not change the solution."""
+        pending = self._new_values.size()
+        k = len(self) - 1 - pending
+        if self._held is None or self._held[0] != k:
+            _, rot = compose_jacobians(self._poses[k], np.zeros(3))  # node frame -> map frame
+            self._held = (k, rot @ np.asarray(self._isam.marginalCovariance(k)) @ rot.T)
+        cov = self._held[1]
+        for e in self.edges[len(self.edges) - pending:]:  # at most one batch of sequential edges
+            ja, jb = compose_jacobians(self._poses[e.a], e.rel)
+            cov = ja @ cov @ ja.T + jb @ e.cov @ jb.T
+        return 0.5 * (cov + cov.T)

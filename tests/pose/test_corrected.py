@@ -8,8 +8,9 @@ import pytest
 
 from glassmap.mapping import MapperConfig
 from glassmap.grid import MapGrid
-from glassmap.pose.backend import corrected_estimate
+from glassmap.pose.backend import BackEndConfig, GraphCorrection, corrected_estimate
 from glassmap.pose.corrected import MapRebuild, NoClassifier, rebuild_maps, relative_sigma
+from glassmap.pose.motion import compose
 from glassmap.types import PoseEstimate, Scan
 from tests.pose.test_loop_closure import GEOM, _keys, _ring, _route
 
@@ -90,13 +91,20 @@ def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
         online_sigma(est, e, r, "world")
 
 
-def test_corrected_estimate_turns_the_covariance_with_the_correction_and_adds_the_closures_sigma():
+def test_corrected_estimate_is_the_graph_node_moved_along_the_front_ends_motion_with_the_nodes_marginal():
+    cfg = BackEndConfig()
     est = PoseEstimate(3.0, 1.0, 0.0, 0.1, np.diag([4e-4, 1e-4, 1e-6]), "degraded")
-    correction = np.array([1.0, 2.0, np.pi / 2])
-    c = corrected_estimate(est, correction, 0, (0.01, 0.01, 0.002))
+    assert corrected_estimate(est, None, cfg) is est  # no node in the graph yet
+    node_cov = np.diag([1e-4, 4e-4, 1e-6])
+    corr = GraphCorrection(np.array([1.0, 2.0, np.pi / 2]), front=est.pose.copy(), stamp=3.0, cov=node_cov,
+                           closures=2)
+    c = corrected_estimate(est, corr, cfg)  # at the node itself: its marginal and the floor, not the front end's
     np.testing.assert_allclose(c.pose, [1.0, 3.0, 0.1 + np.pi / 2], atol=1e-12)  # compose(correction, pose)
-    np.testing.assert_allclose(c.covariance, np.diag([1e-4, 4e-4, 1e-6]), atol=1e-15)  # x and y swap at 90 deg
+    floor = np.diag(np.square(cfg.min_sigma))  # equal in x and y: the same in any frame
+    np.testing.assert_allclose(c.covariance, node_cov + floor, atol=1e-15)
     assert (c.stamp, c.status) == (3.0, "degraded")
-    closed = corrected_estimate(est, correction, 2, (0.01, 0.01, 0.002))
-    np.testing.assert_allclose(closed.covariance, np.diag([2e-4, 5e-4, 5e-6]), atol=1e-15)
-    np.testing.assert_allclose(closed.pose, c.pose)
+    later = replace(est, stamp=4.0, x=2.0)  # 1 m on along the front end's x axis, 1 s later
+    moved = corrected_estimate(later, corr, cfg)
+    np.testing.assert_allclose(moved.pose[:2], compose(corr.correction, later.pose)[:2], atol=1e-12)
+    grow = np.diag(moved.covariance) - np.diag(c.covariance)
+    assert np.all(grow > 0)  # odometry noise of the metre, and the node's heading error times the lever arm

@@ -73,3 +73,20 @@ def test_reweighted_edges_give_the_solution_of_a_graph_built_with_them():
     assert np.abs(g.poses - stiff).max() > 0.01  # the weights moved the solution
     with pytest.raises(PoseGraphError, match="sequential edges"):
         g.reweight([loose] * 3)
+
+
+def test_newest_covariance_is_the_marginal_in_the_map_frame_without_handing_over_the_batch():
+    legs = [np.array([0.5, 0.0, 0.3])] * 13  # 13 nodes after the first: one batch of 10 handed over, 3 pending
+    g = PoseGraph(np.zeros(3), np.diag([1e-8, 1e-8, 1e-8]), batch=10)
+    for r in legs:
+        g.add_node(r, np.diag([1e-4, 4e-4, 1e-5]))
+    pending = g.poses
+    cov = g.newest_covariance()
+    np.testing.assert_array_equal(g.poses, pending)  # nothing re-solved
+    p = g.refresh()[-1]
+    c, s = np.cos(p[2]), np.sin(p[2])
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(cov, rot @ g.marginal(13) @ rot.T, rtol=1e-6, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    g.add_loop(0, 13, relative(np.zeros(3), p), np.diag([1e-6, 1e-6, 1e-6]))
+    assert np.trace(g.newest_covariance()) < 0.1 * np.trace(cov)  # a closure to the start: it shrinks
