@@ -125,8 +125,10 @@ def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: 
     optimised pose composed with the front end's motion since that node. Its covariance is the node's
     marginal carried along that motion, plus the motion's own odometry noise (``config.motion`` over the time
     since the node, and ``config.min_sigma``), as an unscaled sequential edge to the current pose would add.
-    The front end's covariance is not used: it is relative to the map the front end built, which the graph's
-    closures have moved. ``corr`` None (the graph holds no node yet): ``est`` unchanged."""
+    The front end's covariance is not used (it is relative to the map the front end built, which the graph's
+    closures have moved), except when the front end has lost its track: the graph's nodes came from the poses
+    it has lost, so its covariance (widened by the matches' disagreement) is added, turned with the correction.
+    ``corr`` None (the graph holds no node yet): ``est`` unchanged."""
     if corr is None:
         return est
     node = compose(corr.correction, corr.front)
@@ -134,6 +136,9 @@ def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: 
     ja, jb = compose_jacobians(node, rel)
     q = config.motion.covariance(rel, max(est.stamp - corr.stamp, 0.0)) + np.diag(np.square(config.min_sigma))
     cov = ja @ np.asarray(corr.cov, dtype=np.float64) @ ja.T + jb @ q @ jb.T
+    if est.status == "lost":
+        _, turn = compose_jacobians(corr.correction, est.pose)
+        cov = cov + turn @ np.asarray(est.covariance, dtype=np.float64) @ turn.T
     x, y, yaw = compose(corr.correction, est.pose)
     return PoseEstimate(est.stamp, float(x), float(y), float(yaw), 0.5 * (cov + cov.T), est.status)
 

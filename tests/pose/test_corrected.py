@@ -108,3 +108,5 @@ def test_corrected_estimate_is_the_graph_node_moved_along_the_front_ends_motion_
     np.testing.assert_allclose(moved.pose[:2], compose(corr.correction, later.pose)[:2], atol=1e-12)
     grow = np.diag(moved.covariance) - np.diag(c.covariance)
     assert np.all(grow > 0)  # odometry noise of the metre, and the node's heading error times the lever arm
+    lost = corrected_estimate(replace(est, status="lost"), corr, cfg)  # the graph cannot vouch for a lost track
+    np.testing.assert_allclose(lost.covariance, c.covariance + np.diag([1e-4, 4e-4, 1e-6]), atol=1e-15)
