@@ -115,7 +115,8 @@ class MappingConfig:
     laser_y: float = setting(0.0, "laser mount in the base frame: y (m, left)")
     laser_yaw: float = setting(0.0, "laser mount in the base frame: yaw (rad)")
     loop_closure: bool = setting(False, "run the pose graph with loop closure behind the estimator in a worker "
-                                 "thread (records /pose/corrected, /pose_graph/path, /map/corrected)")
+                                 "process (records /pose/corrected, the estimate corrected by the graph with the "
+                                 "graph's covariance, /pose_graph/path, /map/corrected)")
     initial_x: float = setting(0.0, "initial pose of the base in the map frame: x (m)")
     initial_y: float = setting(0.0, "initial pose of the base in the map frame: y (m)")
     initial_yaw: float = setting(0.0, "initial pose of the base in the map frame: yaw (rad)")

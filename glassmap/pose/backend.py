@@ -21,8 +21,8 @@ builds; the back end takes each key scan it hands over (``PoseEstimator.last_key
 
 The corrected pose of anything the front end places is ``correct(pose)``: the front-end pose moved by the
 correction of the newest node (graph solution (+) front-end pose^-1); :func:`corrected_estimate` gives it with
-its covariance from the graph (``latest``). The back end is pure computation; the
-runtime runs it in a worker thread so no scan waits for it.
+its covariance from the graph (``latest``). The back end is pure computation; the runtime runs it in a
+worker process (``runtime.graph_worker``) so no scan waits for it.
 """
 
 from __future__ import annotations

@@ -192,18 +192,18 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
                       matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated,
                       key=key, lost_events=est.stats.lost_events)
     if backend is not None:
-        _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, t_back)
-        traj.corrected_covs = corrected_covs
+        _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, corrected_covs,
+                     t_back)
     return traj, est
 
 
 def _add_backend(traj: Trajectory, backend, run, key_scan: np.ndarray, last_key: np.ndarray, corrected: np.ndarray,
-                 t_back: list[float]) -> None:
+                 corrected_covs: np.ndarray, t_back: list[float]) -> None:
     """Fill the back end's part of ``traj``: optimised poses (every scan moved with its last key scan) and
     each closure's error against the truth."""
     opt = backend.poses()
     front = np.array([k.pose for k in backend.keys])
-    traj.corrected = corrected
+    traj.corrected, traj.corrected_covs = corrected, corrected_covs
     traj.optimised = np.array([compose(opt[k], relative(front[k], p)) for k, p in zip(last_key, traj.poses)])
     traj.closures = list(backend.closures)
     truth = run.scan_true_poses[key_scan]

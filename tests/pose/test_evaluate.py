@@ -51,3 +51,7 @@ def test_a_run_with_the_pose_graph_reports_its_figures():
     assert m["lc_closures"] == 0 and m["lc_false_closures"] == 0 and m["lc_chain_unscaled"] == 0
     assert m["lc_checks"] >= 0 and np.isfinite(m["lc_opt_ate_rmse"])
     assert abs(m["lc_opt_ate_rmse"] - m["ate_rmse"]) < 1e-3
+    # the corrected estimate's covariance is the graph's: the chain of key scans compounded from the start
+    assert traj.corrected_covs.shape == traj.covs.shape and m["lc_nees_mean"] > 0.0 and 0.0 < m["lc_inside_95"] <= 1.0
+    xy = traj.corrected_covs[:, 0, 0] + traj.corrected_covs[:, 1, 1]
+    assert xy[-1] > 2.0 * xy[len(xy) // 10]  # a random walk without a closure: it grows along the route
