@@ -49,7 +49,8 @@ class BackEndConfig:
     """motion: the odometry noise model of odometry edges; match_scale: multiplies the covariance of
     scan-match edges (see the module docstring); min_sigma: (x, y, yaw) standard deviations
     added to every sequential edge (m, m, rad); chain_scale: multiplies a sequential edge's (x, y, yaw)
-    standard deviations (x, y in the frame of the edge's first key scan) after that; chain_gate: the
+    standard deviations (x, y in the frame of the edge's first key scan) after that; x keeps its scale 1 where a
+    key scan at either end was matched in fewer than three directions (a corridor: odometry's step); chain_gate: the
     chi-square probability beyond which a closure disagrees with the scaled chain (then unscaled between its
     nodes); loop_closure: on/off and its settings; submaps."""
 
@@ -156,6 +157,7 @@ class GraphBackEnd:
         self.closures: list[Closure] = []
         self.seq_cov: list[np.ndarray] = []  # sequential edges' covariances before chain_scale
         self.unscaled: list[bool] = []  # per sequential edge: chain_scale taken off by a closure
+        self.partial: list[bool] = []  # per sequential edge: a key scan at either end matched in < 3 directions
         self.chain_unscaled = 0  # closures that took chain_scale off the edges between their nodes
         from scipy.stats import chi2
 
@@ -183,6 +185,7 @@ class GraphBackEnd:
                 cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
             self.seq_cov.append(cov)
             self.unscaled.append(False)
+            self.partial.append(min(key.fused_dims, prev.fused_dims) < 3)
             node = self.graph.add_node(rel, self._scaled(len(self.seq_cov) - 1))
             self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
         self.keys.append(key)
@@ -204,7 +207,10 @@ class GraphBackEnd:
         """Covariance (3, 3) of sequential edge i (node i -> i + 1) as the graph holds it."""
         if self.unscaled[i]:
             return self.seq_cov[i]
-        s = np.diag(self.config.chain_scale)
+        s = np.array(self.config.chain_scale)
+        if self.partial[i]:  # along a corridor the step along the heading is odometry's: its noise stays
+            s[0] = 1.0
+        s = np.diag(s)
         return s @ self.seq_cov[i] @ s
 
     def chain_covariance(self, a: int, b: int) -> np.ndarray:

@@ -174,3 +174,19 @@ def test_a_chain_gate_outside_0_1_is_refused():
 
     with pytest.raises(ValueError, match="chain_gate"):
         BackEndConfig(chain_gate=1.5)
+
+
+def test_a_step_matched_in_fewer_than_three_directions_keeps_its_along_track_noise():
+    """Along a corridor the match fixes the sideways position and heading, odometry the step along the heading:
+    chain_scale stiffens only what a match measured."""
+    from dataclasses import replace
+
+    truth = _route([(-8.5, -4.5), (-6.0, -4.5)])
+    keys = _keys(_ring(), truth, 0.0)[:3]
+    be = GraphBackEnd(BackEndConfig(loop_closure=False))
+    for k in (keys[0], keys[1], replace(keys[2], fused_dims=2)):
+        be.add(k)
+    sx, sy, syaw = BackEndConfig().chain_scale
+    full, part = be.seq_cov
+    np.testing.assert_allclose(np.diag(be._scaled(0)), np.diag(full) * np.square([sx, sy, syaw]))
+    np.testing.assert_allclose(np.diag(be._scaled(1)), np.diag(part) * np.square([1.0, sy, syaw]))
