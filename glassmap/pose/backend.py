@@ -19,9 +19,9 @@ builds; the back end takes each key scan it hands over (``PoseEstimator.last_key
   sequential edges between the two nodes get their unscaled covariance back (the graph is solved again), so
   that the closure's correction is spread along them as a random walk instead of bending the stiff chain.
 
-The corrected pose of anything the front end places is ``correct(pose)``: the front-end pose moved by the
-correction of the newest node (graph solution (+) front-end pose^-1); :func:`corrected_estimate` gives it with
-its covariance from the graph (``latest``). The back end is pure computation; the runtime runs it in a
+The corrected pose of anything the front end places is the front-end pose moved by the correction of the newest
+node (graph solution (+) front-end pose^-1); :func:`corrected_estimate` gives it with its covariance from the
+graph (``latest``). The back end is pure computation; the runtime runs it in a
 worker process (``runtime.graph_worker``) so no scan waits for it.
 """
 
@@ -284,7 +284,3 @@ class GraphBackEnd:
         """:meth:`corrected_maps` to build a few key scans at a time (:class:`~glassmap.pose.corrected.MapRebuild`);
         key scans added after this call are not in it."""
         return MapRebuild(self.keys, self.poses() if poses is None else poses, params, resolution, mapper)
-
-    def correct(self, pose: np.ndarray) -> np.ndarray:
-        """A front-end pose (3,) in the corrected frame."""
-        return compose(self.correction(), np.asarray(pose, dtype=np.float64))

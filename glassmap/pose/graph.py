@@ -146,7 +146,6 @@ class PoseGraph:
         self._isam.update(g, v)
         for _ in range(self.loop_iterations):
             self._isam.update()
-        self._held = None
         self._read()
 
     def _read(self) -> None:
