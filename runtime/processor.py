@@ -127,7 +127,8 @@ class MappingProcessor:
             from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
             correction, self.graph_lag = self.graph.latest_correction()
-            corrected = corrected_estimate(est, correction, self._backend_config)
+            corrected = corrected_estimate(est, correction, self._backend_config,
+                                           self.estimator.off_chain_covariance())
         self.scans += 1
         st = self.estimator.stats
         timings = {"pose": st.t_core, "likelihood_field": st.t_field, "occupancy": st.t_integrate,

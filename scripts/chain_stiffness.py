@@ -32,6 +32,7 @@ import numpy as np
 
 from glassmap.pose import graph as graph_module
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.pose.chain import ChainConfig
 from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW, run_estimator
 from glassmap.pose.motion import compose, compose_jacobians, relative
 from glassmap.sim.dataset import simulate_run
@@ -60,7 +61,7 @@ def key_scans(world: str, seed: int, cache: str) -> tuple[str, list, np.ndarray]
 def span_ratios(keys: list, truth: np.ndarray) -> dict[int, np.ndarray]:
     """Per span k: mean (error / sigma)^2 (3,) of the front end's relative pose over k key scans against the
     unscaled sequential edges compounded over them."""
-    be = GraphBackEnd(BackEndConfig(chain_scale=(1.0, 1.0, 1.0), loop_closure=False))
+    be = GraphBackEnd(BackEndConfig(chain=ChainConfig(chain_scale=(1.0, 1.0, 1.0)), loop_closure=False))
     for k in keys:
         be.add(k)
     front = np.array([k.pose for k in keys])
@@ -89,7 +90,7 @@ def run_back_end(keys: list, truth: np.ndarray, scale: tuple[float, float, float
         graph_module.PoseGraph.add_loop = (
             lambda self, a, b, rel, cov: add_loop(self, a, b, relative(truth[a], truth[b]), cov))
     try:
-        be = GraphBackEnd(BackEndConfig(chain_scale=scale))
+        be = GraphBackEnd(BackEndConfig(chain=ChainConfig(chain_scale=scale)))
         for k in keys:
             be.add(k)
     finally:
@@ -110,7 +111,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default="", help="directory that keeps each world's key scans between runs")
     ap.add_argument("--scales", default=";".join(",".join(f"{v:g}" for v in s) for s in
-                                                 ((1.0, 1.0, 1.0), BackEndConfig().chain_scale)),
+                                                 ((1.0, 1.0, 1.0), ChainConfig().chain_scale)),
                     help="chain_scale values to compare: 'x,y,yaw;x,y,yaw;...'")
     ap.add_argument("--exact-closures", action="store_true", help="replace each closure by the true relative pose")
     args = ap.parse_args()

@@ -55,9 +55,13 @@ def main() -> int:
     backend_cfg = BackEndConfig()
     for kv in filter(None, args.backend.split(",")):
         k, v = kv.split("=")
-        cur = getattr(backend_cfg, k)
+        in_chain = hasattr(backend_cfg.chain, k)  # the sequential edges' settings
+        cur = getattr(backend_cfg.chain if in_chain else backend_cfg, k)
         val = tuple(float(x) for x in v.split(":")) if isinstance(cur, tuple) else type(cur)(float(v))
-        backend_cfg = replace(backend_cfg, **{k: val})
+        if in_chain:
+            backend_cfg = replace(backend_cfg, chain=replace(backend_cfg.chain, **{k: val}))
+        else:
+            backend_cfg = replace(backend_cfg, **{k: val})
     for world in args.worlds.split(","):
         run = simulate_run(world, None if args.route == "default" else args.route, seed=args.seed)
         backend = GraphBackEnd(backend_cfg, cfg.likelihood.sigma_hit)

@@ -4,12 +4,9 @@ The front end (:class:`~glassmap.pose.estimator.PoseEstimator`) keeps matching e
 builds; the back end takes each key scan it hands over (``PoseEstimator.last_key_scan``) and
 
 * appends a node to the :class:`~glassmap.pose.graph.PoseGraph` with a *sequential* edge from the previous
-  key scan: the front end's relative pose. Its covariance is the wheel-odometry noise of that motion
-  (``MotionNoise``) and, when both key scans were placed by a scan match (a *scan-match* edge), fused
-  (information sum) with ``match_scale`` times the two poses' filter covariances carried through the
-  relative pose (:func:`relative_covariance`; they are relative to the map built so far, which is what
-  keeps consecutive key scans consistent, and large along directions a scan did not constrain, e.g. along
-  a corridor, where odometry then dominates);
+  key scan: the front end's relative pose, with the covariance of :mod:`glassmap.pose.chain` (odometry, fused
+  with the matches where both key scans were matched, scaled by ``chain_scale``), so that without closures
+  the graph's marginal is the front end's own reported covariance;
 * files it into the open :class:`~glassmap.pose.submaps.Submap`;
 * every few key scans asks the :class:`~glassmap.pose.loop_closure.LoopCloser` for closures against older
   submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves). Before that, each closure is compared
@@ -34,10 +31,11 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams
 from glassmap.mapping import GlassMapper, MapperConfig
+from glassmap.pose.chain import ChainConfig, partial_step
 from glassmap.pose.corrected import MapRebuild, rebuild_maps
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
-from glassmap.pose.motion import MotionNoise, compose, compose_jacobians, relative
+from glassmap.pose.motion import compose, compose_jacobians, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.types import PoseEstimate, wrap_angle
 
@@ -46,18 +44,11 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class BackEndConfig:
-    """motion: the odometry noise model of odometry edges; match_scale: multiplies the covariance of
-    scan-match edges (see the module docstring); min_sigma: (x, y, yaw) standard deviations
-    added to every sequential edge (m, m, rad); chain_scale: multiplies a sequential edge's (x, y, yaw)
-    standard deviations (x, y in the frame of the edge's first key scan) after that; x keeps its scale 1 where a
-    key scan at either end was matched in fewer than three directions (a corridor: odometry's step); chain_gate: the
+    """chain: the sequential edges' covariance (:class:`~glassmap.pose.chain.ChainConfig`); chain_gate: the
     chi-square probability beyond which a closure disagrees with the scaled chain (then unscaled between its
     nodes); loop_closure: on/off and its settings; submaps."""
 
-    motion: MotionNoise = field(default_factory=MotionNoise)
-    match_scale: float = 0.1
-    min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
-    chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
+    chain: ChainConfig = field(default_factory=ChainConfig)
     chain_gate: float = 0.99
     loop_closure: bool = True
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
@@ -89,23 +80,6 @@ class Closure:
         return float(np.hypot(e[0], e[1])), abs(float(e[2]))
 
 
-def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
-    """Covariance (3, 3) of ``relative(a, b)``'s (x, y, yaw) for poses a, b (3,) with independent errors of
-    covariances cov_a, cov_b (map frame, additive x, y, yaw)."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    d = np.asarray(b[:2], dtype=np.float64) - np.asarray(a[:2], dtype=np.float64)
-    rt = np.array([[c, s], [-s, c]])
-    ja = np.zeros((3, 3))
-    ja[:2, :2] = -rt
-    ja[:2, 2] = np.array([[-s, c], [-c, -s]]) @ d
-    ja[2, 2] = -1.0
-    jb = np.zeros((3, 3))
-    jb[:2, :2] = rt
-    jb[2, 2] = 1.0
-    out = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
-    return 0.5 * (out + out.T)
-
-
 @dataclass(frozen=True)
 class GraphCorrection:
     """The pose graph's word on the front end's poses after its newest node: ``correction`` (3,), the rigid
@@ -121,25 +95,21 @@ class GraphCorrection:
     closures: int
 
 
-def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: BackEndConfig) -> PoseEstimate:
+def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: BackEndConfig,
+                       off_chain: np.ndarray | None = None) -> PoseEstimate:
     """A front-end estimate (base pose, map frame) moved by the pose graph's correction: the newest node's
     optimised pose composed with the front end's motion since that node. Its covariance is the node's
-    marginal carried along that motion, plus the motion's own odometry noise (``config.motion`` over the time
-    since the node, and ``config.min_sigma``), as an unscaled sequential edge to the current pose would add.
-    The front end's covariance is not used (it is relative to the map the front end built, which the graph's
-    closures have moved), except when the front end has lost its track: the graph's nodes came from the poses
-    it has lost, so its covariance (widened by the matches' disagreement) is added, turned with the correction.
+    marginal carried along that motion, plus the motion's own odometry noise (:meth:`ChainConfig.carried`), plus
+    ``off_chain`` turned with the correction: what the front end's covariance holds beyond its chain of key
+    scans (``PoseEstimator.off_chain_covariance``: an extrapolated motion, a lost track's widened covariance).
     ``corr`` None (the graph holds no node yet): ``est`` unchanged."""
     if corr is None:
         return est
     node = compose(corr.correction, corr.front)
-    rel = relative(corr.front, est.pose)
-    ja, jb = compose_jacobians(node, rel)
-    q = config.motion.covariance(rel, max(est.stamp - corr.stamp, 0.0)) + np.diag(np.square(config.min_sigma))
-    cov = ja @ np.asarray(corr.cov, dtype=np.float64) @ ja.T + jb @ q @ jb.T
-    if est.status == "lost":
+    cov = config.chain.carried(node, corr.cov, relative(corr.front, est.pose), est.stamp - corr.stamp)
+    if off_chain is not None:
         _, turn = compose_jacobians(corr.correction, est.pose)
-        cov = cov + turn @ np.asarray(est.covariance, dtype=np.float64) @ turn.T
+        cov = cov + turn @ np.asarray(off_chain, dtype=np.float64) @ turn.T
     x, y, yaw = compose(corr.correction, est.pose)
     return PoseEstimate(est.stamp, float(x), float(y), float(yaw), 0.5 * (cov + cov.T), est.status)
 
@@ -177,15 +147,9 @@ class GraphBackEnd:
         else:
             prev = self.keys[-1]
             rel = relative(prev.pose, key.pose)
-            dt = max(key.stamp - prev.stamp, 0.0)
-            floor = np.diag(np.square(self.config.min_sigma))
-            cov = self.config.motion.covariance(rel, dt) + floor
-            if key.fused_dims and prev.fused_dims:  # both placed by matches: fuse with their relative pose
-                m = self.config.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
-                cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
-            self.seq_cov.append(cov)
+            self.seq_cov.append(self.config.chain.step_covariance(prev, key))
             self.unscaled.append(False)
-            self.partial.append(min(key.fused_dims, prev.fused_dims) < 3)
+            self.partial.append(partial_step(prev, key))
             node = self.graph.add_node(rel, self._scaled(len(self.seq_cov) - 1))
             self.travel.append(self.travel[-1] + float(np.hypot(rel[0], rel[1])))
         self.keys.append(key)
@@ -207,11 +171,7 @@ class GraphBackEnd:
         """Covariance (3, 3) of sequential edge i (node i -> i + 1) as the graph holds it."""
         if self.unscaled[i]:
             return self.seq_cov[i]
-        s = np.array(self.config.chain_scale)
-        if self.partial[i]:  # along a corridor the step along the heading is odometry's: its noise stays
-            s[0] = 1.0
-        s = np.diag(s)
-        return s @ self.seq_cov[i] @ s
+        return self.config.chain.scaled(self.seq_cov[i], self.partial[i])
 
     def chain_covariance(self, a: int, b: int) -> np.ndarray:
         """Covariance (3, 3) of the front end's relative pose of node b in node a's frame (a < b) that the

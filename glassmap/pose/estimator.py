@@ -30,6 +30,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
+from glassmap.pose.chain import ChainConfig, DriftChain
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.filter_jit import carried, rotated
@@ -54,6 +55,7 @@ PLACEMENT_FIELDS = ("pose_var_yaw", "pose_var_pivot_x", "pose_var_pivot_y", "pos
                     "pose_sys_y")
 _NO_PLACEMENT = (np.inf, 0.0, 0.0, 0.0, 0.0, 0.0)  # row 0 of the table: the cells no key scan placed
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
+MAP_UNCERTAINTY = ("chain", "cells", "off")  # EstimatorConfig.map_uncertainty
 
 
 @dataclass(frozen=True)
@@ -64,8 +66,8 @@ class EstimatorConfig:
         Hokuyo 0.1 m ahead of the axle). initial_pose / initial_sigma: the map frame is anchored here. The
         map frame is defined by the first pose, so its uncertainty is zero: 0.1 mm, 0.1 mrad (not 0, to
         keep the filter's covariance positive definite). The map inherits it: an initial yaw variance is a
-        rotation of the whole map about the start (see :meth:`PoseEstimator.store_map_variance`). Set it
-        larger when the start pose is only known in another frame.
+        rotation of the whole map about the start. Set it larger when the start pose is only known in another
+        frame.
     range_sigma, range_sigma_per_m: range noise of the laser, sigma_r = range_sigma + range_sigma_per_m * r
         (Hokuyo UTM-30LX: 10 mm + 1 mm/m, as in the simulator's laser model).
     keyframe_distance, keyframe_angle, keyframe_max_scans: motion filter. Every scan gets the EKF prediction
@@ -106,9 +108,16 @@ class EstimatorConfig:
         integrating. Off by default because the simulator takes every beam of a scan from the pose at its
         stamp (there is nothing to undo there, and ``glassmap pose eval`` cannot measure the benefit); turn
         it on with a real laser whose ``Scan.stamp`` is the time of the first beam.
-    map_uncertainty: report the covariance relative to the map frame's anchor, not only relative to the
-        map built so far (see :class:`PoseEstimator`): cells remember the error model of the pose that
-        placed them, and a match inherits that of the cells it matched.
+    map_uncertainty: what the reported covariance (:meth:`PoseEstimator.covariance`) is relative to.
+        "chain" (default): the map frame's anchor, through the chain of key scans from the start
+        (:class:`~glassmap.pose.chain.DriftChain`, ``chain``; the pose graph's marginal without closures); it
+        only grows, also where the route comes back onto older map (a loop), which only a pose graph's closure
+        corrects. "cells": the anchor, through the map cells a match used (cells remember the error model of
+        the pose that placed them, and a match inherits that of the cells it matched; see
+        :class:`PoseEstimator`; ``map_bias_per_match`` and ``map_switch_transfer`` belong to it). "off": the
+        map built so far only (the filter's covariance). The gate, the search window, the fusion and
+        ``KeyScan.cov`` always use the filter's covariance relative to the map built so far.
+    chain: the drift model of "chain" (:class:`~glassmap.pose.chain.ChainConfig`).
     map_bias_per_match: systematic error (m) a key scan's placement adds to that of the map region it
         matched, along the laser's viewing direction (matches run ahead: near convex corners and the ends of
         partly seen walls the likelihood field's wall lies slightly behind the surface, more so with range
@@ -116,7 +125,8 @@ class EstimatorConfig:
         vector per cell (layers ``pose_sys_x/_y``), so it grows with each generation of new map, not like a
         random walk, and cancels where the route turns back; the reported covariance adds the matched cells'
         mean outer product of it (see :meth:`PoseEstimator.store_map_variance`). Only the reported covariance
-        uses it (not the gate, the search window or the fusion). 0 turns it off.
+        of ``map_uncertainty = "cells"`` uses it (not the gate, the search window or the fusion). 0 turns it
+        off.
     map_switch_transfer: when a key scan matches map cells whose error model is smaller than that of the
         cells matched before (the route comes back onto older map: a loop), the decrease (its positive
         semi-definite part, at the current pose, in the directions the match constrains; without the systematic
@@ -157,7 +167,8 @@ class EstimatorConfig:
     glass_protect_p: float = 0.7
     integrate: bool = True
     deskew: bool = False
-    map_uncertainty: bool = True
+    map_uncertainty: str = "chain"
+    chain: ChainConfig = dc_field(default_factory=ChainConfig)
     map_bias_per_match: float = 0.002
     map_switch_transfer: bool = False
     correlated_matches: bool = False
@@ -169,6 +180,8 @@ class EstimatorConfig:
                              f"{self.keyframe_distance}, {self.keyframe_angle}, {self.keyframe_max_scans}")
         if self.field_refresh_scans < 1:
             raise ValueError(f"field_refresh_scans must be >= 1, got {self.field_refresh_scans}")
+        if self.map_uncertainty not in MAP_UNCERTAINTY:
+            raise ValueError(f"map_uncertainty must be one of {MAP_UNCERTAINTY}, got {self.map_uncertainty!r}")
 
 
 @dataclass(frozen=True)
@@ -216,16 +229,18 @@ class PoseEstimator:
 
     Covariance. The EKF tracks the pose relative to the map built so far (odometry noise and match
     covariances; with ``correlated_matches``, ``ekf.actual_cov`` also counts the error consecutive matches
-    share, see :mod:`glassmap.pose.filter`); that alone would be overconfident, because the map itself is only as
-    good as the poses that built it. So every end-point cell refers to the error model of its best placement
-    (the key scan that placed the cell itself most precisely; a row per key scan in a table of
-    :data:`PLACEMENT_FIELDS`, the cell's row in the ``pose_placement`` layer): a shift (``pose_var_shift``,
-    m^2 per axis) and a rotation (``pose_var_yaw``, rad^2) about a pivot (``pose_var_pivot_x/_y``, m); a
-    match reads the model of the cells under its end points (``map_cov``, ``map_region``:
-    :meth:`matched_map_covariance`), and the reported covariance is ``ekf.actual_cov + map_cov``. New cells
-    inherit the matched region's rotation about its pivot (:meth:`store_map_variance`), so along a corridor
-    the sideways uncertainty grows linearly with the distance from where the map's direction error came
-    from; coming back to well-known ground makes it shrink again.
+    share, see :mod:`glassmap.pose.filter`): that is what gates and fuses the matches. Reported alone it would
+    be overconfident, because the map itself is only as good as the poses that built it. By default
+    (``map_uncertainty = "chain"``) the reported covariance is the drift of the chain of key scans from the
+    start (:class:`~glassmap.pose.chain.DriftChain`). With "cells", every end-point cell refers instead to the
+    error model of its best placement (the key scan that placed the cell itself most precisely; a row per key
+    scan in a table of :data:`PLACEMENT_FIELDS`, the cell's row in the ``pose_placement`` layer): a shift
+    (``pose_var_shift``, m^2 per axis) and a rotation (``pose_var_yaw``, rad^2) about a pivot
+    (``pose_var_pivot_x/_y``, m); a match reads the model of the cells under its end points (``map_cov``,
+    ``map_region``: :meth:`matched_map_covariance`), and the reported covariance is ``ekf.actual_cov +
+    map_cov``. New cells inherit the matched region's rotation about its pivot (:meth:`store_map_variance`),
+    so along a corridor the sideways uncertainty grows linearly with the distance from where the map's
+    direction error came from; coming back to well-known ground makes it shrink again.
     """
 
     def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
@@ -236,6 +251,7 @@ class PoseEstimator:
             raise ValueError(f"laser_mount must be 3 finite numbers (x, y, yaw), got {config.laser_mount!r}")
         self.ekf = PoseEKF(np.asarray(config.initial_pose, dtype=np.float64),
                            np.diag(np.square(np.asarray(config.initial_sigma, dtype=np.float64))))
+        self.chain = DriftChain(config.chain, self.ekf.cov)  # the key scans' drift (map_uncertainty "chain")
         self.odometry = OdometryBuffer()
         self.field = LikelihoodField(config.likelihood)
         self.matcher = CorrelativeMatcher(config.matcher)
@@ -273,7 +289,7 @@ class PoseEstimator:
         # the placements' error models (PLACEMENT_FIELDS), a row per key scan; the grid holds each cell's row
         self._placements = np.array([_NO_PLACEMENT], dtype=np.float32)
         self._n_placements = 1
-        if config.map_uncertainty:
+        if config.map_uncertainty == "cells":
             g = self.occupancy.grid
             for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32)):
                 if name in g.layer_names:  # another estimator's placements: this one's table knows none of them
@@ -380,14 +396,15 @@ class PoseEstimator:
                 protect = self.glass_protect_mask
             self.occupancy.integrate(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                      scan.geometry.range_max, protect=protect)
-        if ranges.size and write and (cfg.map_uncertainty or cfg.subcell_walls):
+        cells = cfg.map_uncertainty == "cells"
+        if ranges.size and write and (cells or cfg.subcell_walls):
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
             end = self._end_points(angles, ranges, scan.geometry.range_max)
             if not cfg.integrate and not self._grid_holds_scan(end, ranges):
                 self.occupancy.ensure_scan_extent(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                                   scan.geometry.range_max)
-            if cfg.map_uncertainty:
+            if cells:
                 self.store_map_variance(angles, ranges, scan.geometry.range_max, end=end)
             if cfg.subcell_walls:
                 self._store_hits(angles, ranges, scan.geometry.range_max, end=end)
@@ -398,6 +415,7 @@ class PoseEstimator:
             odom=np.zeros(3) if self._last_odom is None else compose(self._last_odom, self._ext),
             fused_dims=st.last_fused_dims, written=bool(write), angles=np.asarray(angles), ranges=ranges,
             range_max=float(scan.geometry.range_max), mount=self.mount)
+        self.chain.add(self.last_key_scan)
         self._since_rebuild += 1
         st.scans += 1
         return self.estimate(stamp)
@@ -418,7 +436,7 @@ class PoseEstimator:
         if h.shape[0] == 0:
             return True
         hm = None if h.shape[0] == 3 else h
-        if cfg.map_uncertainty and cfg.map_switch_transfer and self.map_region is not None:
+        if cfg.map_uncertainty == "cells" and cfg.map_switch_transfer and self.map_region is not None:
             self._transfer_map_switch(pts, res.pose, h)
         z, r = self._measurement_at_state(res)
         _, _, d2 = self.ekf.innovation(z, r, hm)
@@ -462,7 +480,7 @@ class PoseEstimator:
         if st.status == "lost":
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
-        if cfg.map_uncertainty:
+        if cfg.map_uncertainty == "cells":
             self.map_cov, self.map_region = self.matched_map_covariance(pts, self.scan_pose())
         return True
 
@@ -721,11 +739,27 @@ class PoseEstimator:
         return compose(res.pose, back), ja @ res.covariance @ ja.T + self.extrapolation_covariance()
 
     def covariance(self) -> np.ndarray:
-        """Reported 3x3 covariance at the last scan: the EKF's (relative to the map) plus the matched map
-        region's, plus, when the scan came after the newest odometry message, the error of extrapolating with
-        that message's noisy velocity (:meth:`extrapolation_covariance`; transient: the next message replaces
-        the extrapolated motion, so it is not added to the filter's state covariance)."""
+        """Reported 3x3 covariance (map frame) at the last scan (``EstimatorConfig.map_uncertainty``). "chain":
+        the key scans' drift from the start carried to the scan plus :meth:`off_chain_covariance`. "cells": the
+        filter's (relative to the map, see :meth:`scan_relative_covariance`) plus the matched map region's.
+        "off": the filter's."""
+        if self.config.map_uncertainty == "chain":
+            stamp = 0.0 if self._last_stamp is None else self._last_stamp
+            return self.chain.covariance_at(self.scan_pose(), stamp) + self.off_chain_covariance()
         return self.scan_relative_covariance() + self._carried(self.map_cov)
+
+    def off_chain_covariance(self) -> np.ndarray:
+        """3x3 covariance (map frame) of what the chain of key scans does not hold: the pose held past the
+        extrapolation limit while the base may still move (odometry late; the motion extrapolated up to the
+        limit is covered by the chain's odometry noise since the key scan) and, while the track is lost, the
+        filter's covariance (widened by the matches' disagreement; the key scans came from the poses it lost)."""
+        _, v, w, held = self._extrapolated
+        cov = np.zeros((3, 3))
+        if held > 0:
+            cov = rotated(self.ekf.pose, self.config.motion.extrapolation_covariance(v, 0.0, w, held))
+        if self.stats.status == "lost":
+            cov = cov + self.scan_relative_covariance()
+        return cov
 
     def scan_relative_covariance(self) -> np.ndarray:
         """3x3 covariance of the pose at the last scan relative to the map built so far (the filter's, carried

@@ -182,7 +182,7 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
                 key_scan.append(i)
                 latest = backend.latest()
             last_key[k] = len(backend) - 1
-            c = corrected_estimate(e, latest, backend.config)
+            c = corrected_estimate(e, latest, backend.config, est.off_chain_covariance())
             corrected[k], corrected_covs[k] = c.pose, c.covariance
         if on_scan is not None:
             on_scan(i, scan, e, est)

@@ -74,7 +74,8 @@ def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
     from glassmap.types import Odometry
     from tests.pose.synth import make_scan, room_with_corner
 
-    est = PoseEstimator(EstimatorConfig(initial_pose=(-1.5, -1.0, 0.0), laser_mount=(0.0, 0.0, 0.0)))
+    est = PoseEstimator(EstimatorConfig(initial_pose=(-1.5, -1.0, 0.0), laser_mount=(0.0, 0.0, 0.0),
+                                        map_uncertainty="cells"))
     rng = np.random.default_rng(0)
     for k in range(5):
         est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
@@ -100,7 +101,7 @@ def test_corrected_estimate_is_the_graph_node_moved_along_the_front_ends_motion_
                            closures=2)
     c = corrected_estimate(est, corr, cfg)  # at the node itself: its marginal and the floor, not the front end's
     np.testing.assert_allclose(c.pose, [1.0, 3.0, 0.1 + np.pi / 2], atol=1e-12)  # compose(correction, pose)
-    floor = np.diag(np.square(cfg.min_sigma))  # equal in x and y: the same in any frame
+    floor = np.diag(np.square(cfg.chain.min_sigma))  # equal in x and y: the same in any frame
     np.testing.assert_allclose(c.covariance, node_cov + floor, atol=1e-15)
     assert (c.stamp, c.status) == (3.0, "degraded")
     later = replace(est, stamp=4.0, x=2.0)  # 1 m on along the front end's x axis, 1 s later
@@ -108,5 +109,6 @@ def test_corrected_estimate_is_the_graph_node_moved_along_the_front_ends_motion_
     np.testing.assert_allclose(moved.pose[:2], compose(corr.correction, later.pose)[:2], atol=1e-12)
     grow = np.diag(moved.covariance) - np.diag(c.covariance)
     assert np.all(grow > 0)  # odometry noise of the metre, and the node's heading error times the lever arm
-    lost = corrected_estimate(replace(est, status="lost"), corr, cfg)  # the graph cannot vouch for a lost track
+    # what the front end's covariance holds beyond its chain (here a lost track's) is added, turned by 90 deg
+    lost = corrected_estimate(replace(est, status="lost"), corr, cfg, est.covariance)
     np.testing.assert_allclose(lost.covariance, c.covariance + np.diag([1e-4, 4e-4, 1e-6]), atol=1e-15)

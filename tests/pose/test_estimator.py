@@ -219,7 +219,7 @@ def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
     """Cells placed from (0, 0) with position variance 1 cm^2 and yaw variance (0.01 rad)^2: a robot 4 m
     further along x that matches them inherits the placement's yaw error as a sideways (y) error of
     4 m * 0.01 rad, correlated with yaw, and no extra error along x."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells"))
     g = est.occupancy.grid
     g.ensure_contains(np.array([-1.0, -3.0]), np.array([8.0, 3.0]))
     pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])  # base frame of the robot at (4, 0)
@@ -244,7 +244,7 @@ def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
     of 12 m * 0.01 rad (linear in the distance: the map's direction error persists), not the sum of the two
     legs' squares (4^2 + 8^2) that a pivot reset to the placing position would give. (Without the
     systematic match bias, which adds along the viewing direction: tested below.)"""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
     g = est.occupancy.grid
     g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
     vr, pth = 1e-4, 1e-6
@@ -275,7 +275,7 @@ def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
     """A region whose cells carry a systematic error of 2 mm along x, matched by a robot looking along x:
     the cells it places carry 2 mm + map_bias_per_match (1 mm) along x, nothing along y; a robot matching
     only them reports (3 mm)^2 along x and nothing more sideways; looking along y, the bias adds sideways."""
-    cfg = EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.001)
+    cfg = EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.001)
     est = PoseEstimator(cfg)
     g = est.occupancy.grid
     g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
@@ -308,7 +308,7 @@ def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
 def test_the_match_bias_enters_only_the_directions_the_match_fused():
     """Along a featureless corridor (x) the match fuses y and yaw only: looking along x it adds no bias;
     a scan placed without a match adds none either."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.001))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.001))
     g = est.occupancy.grid
     g.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
     est._fused_h = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -326,7 +326,7 @@ def test_the_match_bias_enters_only_the_directions_the_match_fused():
 
 
 def test_without_the_match_bias_the_map_carries_no_systematic_error():
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
     est.occupancy.grid.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
     est.store_map_variance(np.array([0.0, 1.0]), np.array([2.0, 2.0]), 30.0)
     assert np.isfinite(est.placement_field("pose_var_yaw")).sum() == 2  # two cells placed
@@ -337,7 +337,7 @@ def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
     """Odometry at 10 Hz, scans at 40 Hz: a scan 75 ms after the newest message is predicted with that
     message's velocity, whose yaw-rate error (0.1 rad/s by default) turns it by up to 7.5 mrad; the reported
     covariance says so, and drops back when the next message arrives (the filter's own is unchanged)."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0)))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="off"))
     inf = np.full(GEOM.n_beams, np.inf)
     est.predict(Odometry(stamp=0.0, x=0.0, y=0.0, yaw=0.0, v=0.5, omega=0.0))
     e0 = est.update(_scan(inf, 0.0))
@@ -388,7 +388,7 @@ def test_coming_back_onto_older_map_moves_the_drop_of_the_map_part_into_the_filt
     cells, which differ from the older by the drift in between: the filter's covariance grows by the drop,
     (3 cm)^2 - (2 mm)^2 per axis, so the total does not fall before a match has moved the estimate. Coming
     onto cells with a larger error model transfers nothing."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_bias_per_match=0.0))
+    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
     g = est.occupancy.grid
     g.ensure_contains(np.array([-2.0, -3.0]), np.array([8.0, 3.0]))
     pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])

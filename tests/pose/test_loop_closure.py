@@ -6,6 +6,7 @@ one."""
 import numpy as np
 
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.pose.chain import ChainConfig
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import Candidate, LoopCloser, LoopClosureConfig
 from glassmap.pose.motion import compose, relative
@@ -111,7 +112,8 @@ def test_a_loop_the_front_end_kept_consistent_is_not_turned_by_a_closure():
 
     front_ate = float(np.sqrt(np.mean(np.sum((front[:, :2] - truth[:, :2]) ** 2, axis=1))))
     assert ate(BackEndConfig()) < 1.5 * front_ate
-    assert ate(BackEndConfig(chain_scale=(1.0, 1.0, 1.0))) > 2 * front_ate  # the random walk turns it
+    random_walk = BackEndConfig(chain=ChainConfig(chain_scale=(1.0, 1.0, 1.0)))
+    assert ate(random_walk) > 2 * front_ate  # the random walk turns it
 
 
 def test_featureless_corridor_closures_correct_only_what_they_observe():
@@ -186,7 +188,7 @@ def test_a_step_matched_in_fewer_than_three_directions_keeps_its_along_track_noi
     be = GraphBackEnd(BackEndConfig(loop_closure=False))
     for k in (keys[0], keys[1], replace(keys[2], fused_dims=2)):
         be.add(k)
-    sx, sy, syaw = BackEndConfig().chain_scale
+    sx, sy, syaw = ChainConfig().chain_scale
     full, part = be.seq_cov
     np.testing.assert_allclose(np.diag(be._scaled(0)), np.diag(full) * np.square([sx, sy, syaw]))
     np.testing.assert_allclose(np.diag(be._scaled(1)), np.diag(part) * np.square([1.0, sy, syaw]))

@@ -1,0 +1,115 @@
+"""The chain of key scans: how the front end's error in the map frame grows from one key scan to the next.
+
+Each key scan is placed relative to the one before it (the front end's relative pose between them, a
+*sequential edge*). The covariance of that step is the wheel-odometry noise of the motion and, when both key
+scans were placed by a scan match, the information sum with ``match_scale`` times the two poses' filter
+covariances carried through the relative pose (:func:`relative_covariance`: those are relative to the map built
+so far, which keeps consecutive key scans consistent, and large along directions a scan did not constrain).
+Over many steps the front end drifts far less than a random walk of these steps (every match is anchored to the
+same map), so their standard deviations are scaled by ``chain_scale``, except along the heading next to a key
+scan matched in fewer than three directions (a corridor: there the step along it is odometry's).
+
+Compounded along the key scans this is the covariance of the front end's pose relative to where it started:
+what the front end reports (:class:`DriftChain`, ``EstimatorConfig.map_uncertainty = "chain"``) and, without
+loop closures, the pose graph's marginal (``GraphBackEnd``, whose sequential edges are these steps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from glassmap.pose.keyscan import KeyScan
+from glassmap.pose.motion import MotionNoise, compose_jacobians, relative
+
+
+def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of ``relative(a, b)``'s (x, y, yaw) for poses a, b (3,) with independent errors of
+    covariances cov_a, cov_b (map frame, additive x, y, yaw)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = np.asarray(b[:2], dtype=np.float64) - np.asarray(a[:2], dtype=np.float64)
+    rt = np.array([[c, s], [-s, c]])
+    ja = np.zeros((3, 3))
+    ja[:2, :2] = -rt
+    ja[:2, 2] = np.array([[-s, c], [-c, -s]]) @ d
+    ja[2, 2] = -1.0
+    jb = np.zeros((3, 3))
+    jb[:2, :2] = rt
+    jb[2, 2] = 1.0
+    out = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
+    return 0.5 * (out + out.T)
+
+
+@dataclass(frozen=True)
+class ChainConfig:
+    """motion: the odometry noise model of a step; match_scale: multiplies the matched poses' covariance of a
+    step both ends of which were matched; min_sigma: (x, y, yaw) standard deviations added to every step (m, m,
+    rad); chain_scale: multiplies a step's (x, y, yaw) standard deviations (x, y in the frame of its first key
+    scan); x keeps its scale 1 where a key scan at either end was matched in fewer than three directions."""
+
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    match_scale: float = 0.1
+    min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
+    chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
+
+    def step_covariance(self, prev: KeyScan, key: KeyScan) -> np.ndarray:
+        """Covariance (3, 3) of the step from key scan ``prev`` to ``key`` (in ``prev``'s frame), before
+        ``chain_scale``."""
+        rel = relative(prev.pose, key.pose)
+        floor = np.diag(np.square(self.min_sigma))
+        cov = self.motion.covariance(rel, max(key.stamp - prev.stamp, 0.0)) + floor
+        if key.fused_dims and prev.fused_dims:  # both placed by matches: fuse with their relative pose
+            m = self.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
+            cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
+        return cov
+
+    def scaled(self, cov: np.ndarray, partial: bool) -> np.ndarray:
+        """A step's covariance ``cov`` with ``chain_scale`` applied; ``partial``: a key scan at either end was
+        matched in fewer than three directions (x keeps its noise)."""
+        s = np.array(self.chain_scale)
+        if partial:
+            s[0] = 1.0
+        s = np.diag(s)
+        return s @ cov @ s
+
+    def carried(self, node: np.ndarray, cov: np.ndarray, rel: np.ndarray, dt: float) -> np.ndarray:
+        """Covariance (3, 3, map frame) of ``compose(node, rel)``: a key scan's pose ``node`` of covariance
+        ``cov`` carried along the front end's motion ``rel`` since it (over ``dt`` s), plus that motion's own
+        odometry noise and ``min_sigma`` (an unscaled step to a pose that is not a key scan)."""
+        ja, jb = compose_jacobians(node, rel)
+        q = self.motion.covariance(rel, max(dt, 0.0)) + np.diag(np.square(self.min_sigma))
+        out = ja @ np.asarray(cov, dtype=np.float64) @ ja.T + jb @ q @ jb.T
+        return 0.5 * (out + out.T)
+
+
+def partial_step(prev: KeyScan, key: KeyScan) -> bool:
+    """Whether a key scan at either end of a step was matched in fewer than three directions."""
+    return min(key.fused_dims, prev.fused_dims) < 3
+
+
+class DriftChain:
+    """The covariance (map frame, x, y, yaw) of the front end's pose compounded along its key scans from the
+    start: a sequential step per key scan (:meth:`ChainConfig.step_covariance`, scaled), and from the newest key
+    scan to the current pose the motion since it (:meth:`ChainConfig.carried`)."""
+
+    def __init__(self, config: ChainConfig, initial_cov: np.ndarray) -> None:
+        self.config = config
+        self.key: KeyScan | None = None  # the newest key scan
+        self.cov = np.asarray(initial_cov, dtype=np.float64).copy()  # its covariance (before it: the start's)
+
+    def add(self, key: KeyScan) -> None:
+        """Compound the step to a new key scan."""
+        if self.key is not None:
+            cfg = self.config
+            step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
+            ja, jb = compose_jacobians(self.key.pose, relative(self.key.pose, key.pose))
+            cov = ja @ self.cov @ ja.T + jb @ step @ jb.T
+            self.cov = 0.5 * (cov + cov.T)
+        self.key = key
+
+    def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:
+        """Covariance (3, 3) of the front end's pose ``pose`` (base, map frame) at ``stamp`` (s)."""
+        if self.key is None:
+            return self.cov.copy()
+        return self.config.carried(self.key.pose, self.cov, relative(self.key.pose, pose), stamp - self.key.stamp)

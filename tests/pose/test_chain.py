@@ -1,0 +1,55 @@
+"""The chain of key scans: the drift the front end reports is the pose graph's marginal without closures."""
+
+import numpy as np
+
+from glassmap.pose.backend import BackEndConfig, GraphBackEnd
+from glassmap.pose.chain import ChainConfig, DriftChain
+from glassmap.pose.keyscan import KeyScan
+from glassmap.pose.motion import compose
+
+
+def _key(i: int, pose: np.ndarray, fused_dims: int = 3) -> KeyScan:
+    return KeyScan(seq=i, stamp=0.1 * i, pose=np.asarray(pose, dtype=np.float64), cov=np.diag([1e-5, 4e-5, 1e-6]),
+                   odom=np.zeros(3), fused_dims=fused_dims, written=True, angles=np.zeros(1), ranges=np.ones(1),
+                   range_max=30.0, mount=np.zeros(3))
+
+
+def _keys(n: int) -> list[KeyScan]:
+    """Key scans 5 cm apart on an arc (1 deg per step); every 7th matched in two directions only, every 11th
+    placed by odometry alone."""
+    poses = [np.zeros(3)]
+    for _ in range(n - 1):
+        poses.append(compose(poses[-1], np.array([0.05, 0.0, np.radians(1.0)])))
+    return [_key(i, p, 0 if i % 11 == 10 else 2 if i % 7 == 6 else 3) for i, p in enumerate(poses)]
+
+
+def test_the_chain_is_the_pose_graphs_marginal_without_closures():
+    chain = DriftChain(ChainConfig(), np.eye(3) * 1e-6)  # the graph's prior on its first node
+    backend = GraphBackEnd(BackEndConfig(loop_closure=False))
+    for key in _keys(60):
+        chain.add(key)
+        backend.add(key)
+        np.testing.assert_allclose(chain.cov, backend.latest().cov, rtol=1e-6, atol=1e-13)
+
+
+def test_the_chain_grows_from_the_newest_key_scan_with_the_motion_since():
+    cfg = ChainConfig()
+    chain = DriftChain(cfg, np.eye(3) * 1e-6)
+    assert np.array_equal(chain.covariance_at(np.ones(3), 5.0), np.eye(3) * 1e-6)  # before any key scan
+    keys = _keys(30)
+    for key in keys:
+        chain.add(key)
+    last = keys[-1]
+    at_key = chain.covariance_at(last.pose, last.stamp)  # the key scan itself: its drift and the floor
+    np.testing.assert_allclose(at_key, chain.cov + np.diag(np.square(cfg.min_sigma)), atol=1e-15)
+    ahead = chain.covariance_at(compose(last.pose, np.array([1.0, 0.0, 0.0])), last.stamp + 2.0)
+    assert np.all(np.diag(ahead) > np.diag(at_key))  # a metre of odometry, and the heading's lever arm
+
+
+def test_a_chain_of_matched_steps_is_stiffer_than_odometry():
+    keys = _keys(40)
+    scaled, odometry = DriftChain(ChainConfig(), np.zeros((3, 3))), DriftChain(ChainConfig(), np.zeros((3, 3)))
+    for key in keys:
+        scaled.add(key)
+        odometry.add(_key(key.seq, key.pose, 0))
+    assert np.all(np.diag(scaled.cov) < np.diag(odometry.cov))
