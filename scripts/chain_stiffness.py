@@ -1,4 +1,4 @@
-"""How stiff the pose graph's chain of sequential edges should be (`BackEndConfig.chain_scale`).
+"""How stiff the pose graph's chain of sequential edges should be (`ChainConfig.chain_scale`).
 
 Runs the front end once per world (whole route, no back end; the key scans are kept, in ``--cache`` if given)
 and then

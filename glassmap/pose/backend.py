@@ -101,7 +101,8 @@ def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: 
     optimised pose composed with the front end's motion since that node. Its covariance is the node's
     marginal carried along that motion, plus the motion's own odometry noise (:meth:`ChainConfig.carried`), plus
     ``off_chain`` turned with the correction: what the front end's covariance holds beyond its chain of key
-    scans (``PoseEstimator.off_chain_covariance``: an extrapolated motion, a lost track's widened covariance).
+    scans (``PoseEstimator.off_chain_covariance``: a pose held past the extrapolation limit, a lost track's
+    widened covariance).
     ``corr`` None (the graph holds no node yet): ``est`` unchanged."""
     if corr is None:
         return est
