@@ -4,9 +4,9 @@
 seeds 1000-1999); on test worlds (seeds 0-99) it only reports.
 
 Usage: .venv/bin/python scripts/pose_consistency.py WORLD.toml[,WORLD.toml...] [--seeds 0-2] [--route short]
-           [--set map_bias_per_match=0.002] [--scale-sys 0,1.5] [--workers 1] [--cache DIR] [--out runs.csv]
+           [--set map_uncertainty=off] [--workers 1] [--cache DIR] [--out runs.csv]
 
-``--set`` overrides EstimatorConfig fields (numbers or booleans; nested ones dotted: matcher.voxel=0.1);
+``--set`` overrides EstimatorConfig fields (numbers, booleans or words; nested ones dotted: matcher.voxel=0.1);
 ``--cache`` keeps the simulated runs as .npz files so that variants of the estimator are compared on the same
 runs without simulating again.
 """
@@ -23,8 +23,7 @@ from dataclasses import fields, replace
 import numpy as np
 
 from glassmap.pose.estimator import EstimatorConfig
-from glassmap.pose.evaluate import CHI2_3DOF_95, metrics, run_estimator
-from glassmap.types import wrap_angle
+from glassmap.pose.evaluate import metrics, run_estimator
 
 NEES_BAND = (1.5, 6.0)
 INSIDE_MIN = 0.85
@@ -39,20 +38,23 @@ def _config(sets: list[str]) -> EstimatorConfig:
 
 
 def _override(obj, path: list[str], value: str):
-    """The dataclass ``obj`` with the field ``path`` (nested: ["matcher", "voxel"]) set to ``value`` (a number
-    or a boolean)."""
+    """The dataclass ``obj`` with the field ``path`` (nested: ["matcher", "voxel"]) set to ``value`` (a number,
+    a boolean or a string)."""
     name = path[0]
     if name not in {f.name for f in fields(obj)}:
         raise SystemExit(f"no {type(obj).__name__} field {name!r}")
     cur = getattr(obj, name)
     if len(path) > 1:
         return replace(obj, **{name: _override(cur, path[1:], value)})
-    new = (value.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else type(cur)(float(value))
+    if isinstance(cur, bool):
+        new = value.lower() in ("1", "true", "yes")
+    else:
+        new = value if isinstance(cur, str) else type(cur)(float(value))
     return replace(obj, **{name: new})
 
 
 def _one(job: tuple) -> dict:
-    world, route, seed, sets, cache, scales = job
+    world, route, seed, sets, cache = job
     from glassmap.sim.dataset import SimRun, simulate_run
 
     run = None
@@ -67,24 +69,8 @@ def _one(job: tuple) -> dict:
         if path:
             run.save(path)
     t = time.perf_counter()
-    sys_part: dict[int, np.ndarray] = {}
-
-    def hook(i, scan, e, est):
-        reg = est.map_region
-        sys_part[i] = np.zeros((2, 2)) if reg is None else reg.sys_cov
-
-    traj, _ = run_estimator(run, _config(sets), world=world, on_scan=hook)
+    traj, _ = run_estimator(run, _config(sets), world=world)
     m = metrics(traj, run).as_dict()
-    # the same run with the systematic part of the reported covariance scaled by k (it is proportional to
-    # map_bias_per_match^2; the placements it chooses change little): NEES for other values of that setting
-    err = traj.poses - traj.truth
-    err[:, 2] = wrap_angle(err[:, 2])
-    sp = np.stack([sys_part[i] for i in range(run.n_scans)])
-    for k in scales:
-        cov = traj.covs.copy()
-        cov[:, :2, :2] += (k * k - 1.0) * sp
-        nees = np.einsum("si,si->s", err, np.linalg.solve(cov, err[:, :, None])[:, :, 0])
-        m[f"nees_x{k:g}"], m[f"inside_x{k:g}"] = float(nees.mean()), float(np.mean(nees <= CHI2_3DOF_95))
     m["seconds"] = time.perf_counter() - t
     return m
 
@@ -105,14 +91,11 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", default="")
     ap.add_argument("--out", default="")
-    ap.add_argument("--scale-sys", default="", help="also report NEES with map_bias_per_match scaled by these "
-                    "factors, e.g. 0,0.5,2 (from the same runs: the systematic part of the covariance is rescaled)")
     args = ap.parse_args()
     _config(args.set)  # fail early on a bad override
     if args.cache:
         os.makedirs(args.cache, exist_ok=True)
-    scales = [float(k) for k in args.scale_sys.split(",")] if args.scale_sys else []
-    jobs = [(w, args.route, s, args.set, args.cache, scales)
+    jobs = [(w, args.route, s, args.set, args.cache)
             for w in args.worlds.split(",") for s in _seeds(args.seeds)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
@@ -122,8 +105,7 @@ def main() -> int:
         print(f"{r['world']:22s} seed {r['seed']:2d}  ATE {100 * r['ate_rmse']:5.2f} cm  NEES {r['nees_mean']:6.2f}  "
               f"inside {100 * r['inside_95']:5.1f} %  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
               f"{'in band' if ok else 'OUT'}", flush=True)
-    for k in [None] + scales:
-        _summary(rows, "" if k is None else f"_x{k:g}", "" if k is None else f"systematic part x{k:g}: ")
+    _summary(rows)
     print(f"{time.perf_counter() - t0:.0f} s")
     if args.out:
         with open(args.out, "w", newline="") as f:
@@ -133,13 +115,13 @@ def main() -> int:
     return 0
 
 
-def _summary(rows: list[dict], suffix: str, label: str) -> None:
-    nk, ik = ("nees_mean", "inside_95") if not suffix else ("nees" + suffix, "inside" + suffix)
+def _summary(rows: list[dict]) -> None:
+    nk, ik = "nees_mean", "inside_95"
     nees = np.array([r[nk] for r in rows])
     inside = np.array([r[ik] for r in rows])
     band = (nees >= NEES_BAND[0]) & (nees <= NEES_BAND[1]) & (inside >= INSIDE_MIN)
     q = np.percentile(nees, [0, 25, 50, 75, 100])
-    print(f"{label}{len(rows)} runs, {band.sum()} in band; mean NEES min {q[0]:.2f} "
+    print(f"{len(rows)} runs, {band.sum()} in band; mean NEES min {q[0]:.2f} "
           f"quartiles {q[1]:.2f} / {q[2]:.2f} / "
           f"{q[3]:.2f} max {q[4]:.2f}; inside the 95 % bound min {100 * inside.min():.0f} % median "
           f"{100 * np.median(inside):.0f} %; too wide (NEES < {NEES_BAND[0]}): {(nees < NEES_BAND[0]).sum()}, "
@@ -150,7 +132,7 @@ def _summary(rows: list[dict], suffix: str, label: str) -> None:
     per = [(w, np.mean([r[nk] for r in rows if r["world"] == w]), np.mean([r[ik] for r in rows if r["world"] == w]))
            for w in worlds]
     worst = max(per, key=lambda p: abs(np.log(p[1] / 3.0)))
-    print(f"{label}worst world (mean over seeds): {worst[0]} NEES {worst[1]:.2f}, inside {100 * worst[2]:.0f} %")
+    print(f"worst world (mean over seeds): {worst[0]} NEES {worst[1]:.2f}, inside {100 * worst[2]:.0f} %")
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
-from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
+from glassmap.pose.estimator_jit import add_hits, registration_sigmas
 from glassmap.pose.chain import ChainConfig, DriftChain
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
@@ -45,17 +45,8 @@ log = logging.getLogger(__name__)
 GLASS_LAYER = "glass"
 # chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
 _CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
-MAP_VAR_LAYER = "pose_var_xy"  # variance (m^2) of the cell's own position under its best placement
-MAP_PLACEMENT_LAYER = "pose_placement"  # int32: that placement's row in PoseEstimator's placement table
-# the columns of a placement's error model (a row per key scan placed, shared by every cell it placed best):
-# the map rotation variance (rad^2; inf: no placement yet), the pivot (map frame, m) of that rotation, the
-# shift variance (m^2 per axis), and the systematic error (m, map frame x and y): matches biased the same way
-# in a chain of placements add up (see EstimatorConfig.map_bias_per_match)
-PLACEMENT_FIELDS = ("pose_var_yaw", "pose_var_pivot_x", "pose_var_pivot_y", "pose_var_shift", "pose_sys_x",
-                    "pose_sys_y")
-_NO_PLACEMENT = (np.inf, 0.0, 0.0, 0.0, 0.0, 0.0)  # row 0 of the table: the cells no key scan placed
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
-MAP_UNCERTAINTY = ("chain", "cells", "off")  # EstimatorConfig.map_uncertainty
+MAP_UNCERTAINTY = ("chain", "off")  # EstimatorConfig.map_uncertainty
 
 
 @dataclass(frozen=True)
@@ -112,30 +103,9 @@ class EstimatorConfig:
         "chain" (default): the map frame's anchor, through the chain of key scans from the start
         (:class:`~glassmap.pose.chain.DriftChain`, ``chain``; the pose graph's marginal without closures); it
         only grows, also where the route comes back onto older map (a loop), which only a pose graph's closure
-        corrects. "cells": the anchor, through the map cells a match used (cells remember the error model of
-        the pose that placed them, and a match inherits that of the cells it matched; see
-        :class:`PoseEstimator`; ``map_bias_per_match`` and ``map_switch_transfer`` belong to it). "off": the
-        map built so far only (the filter's covariance). The gate, the search window, the fusion and
-        ``KeyScan.cov`` always use the filter's covariance relative to the map built so far.
+        corrects. "off": the map built so far only (the filter's covariance). The gate, the search window, the
+        fusion and ``KeyScan.cov`` always use the filter's covariance relative to the map built so far.
     chain: the drift model of "chain" (:class:`~glassmap.pose.chain.ChainConfig`).
-    map_bias_per_match: systematic error (m) a key scan's placement adds to that of the map region it
-        matched, along the laser's viewing direction (matches run ahead: near convex corners and the ends of
-        partly seen walls the likelihood field's wall lies slightly behind the surface, more so with range
-        noise; docs/pose.md, "Start-up bias", and how the value was chosen on validation worlds). It is a
-        vector per cell (layers ``pose_sys_x/_y``), so it grows with each generation of new map, not like a
-        random walk, and cancels where the route turns back; the reported covariance adds the matched cells'
-        mean outer product of it (see :meth:`PoseEstimator.store_map_variance`). Only the reported covariance
-        of ``map_uncertainty = "cells"`` uses it (not the gate, the search window or the fusion). 0 turns it
-        off.
-    map_switch_transfer: when a key scan matches map cells whose error model is smaller than that of the
-        cells matched before (the route comes back onto older map: a loop), the decrease (its positive
-        semi-definite part, at the current pose, in the directions the match constrains; without the systematic
-        part of ``map_bias_per_match``, which only the reported covariance uses) is added to the filter's
-        covariance before the match is gated and fused: the estimate was placed relative to the newer cells,
-        and the older ones differ from them by the drift in between (the newer were built from the older
-        through a chain of matches), so the total covariance does not drop until the matches have pulled the
-        estimate onto the older cells. Off by default (docs/pose.md, "Coming back onto older map": better on
-        validation loops, too wide on office).
     correlated_matches: report the filter's covariance allowing for the error that consecutive matches
         share (``PoseEKF.actual_cov``, correlation = share of the previous match's wall blocks this one uses);
         off (default), the filter's own covariance (which fuses every match as independent) is reported
@@ -169,8 +139,6 @@ class EstimatorConfig:
     deskew: bool = False
     map_uncertainty: str = "chain"
     chain: ChainConfig = dc_field(default_factory=ChainConfig)
-    map_bias_per_match: float = 0.002
-    map_switch_transfer: bool = False
     correlated_matches: bool = False
     subcell_walls: bool = True
 
@@ -182,19 +150,6 @@ class EstimatorConfig:
             raise ValueError(f"field_refresh_scans must be >= 1, got {self.field_refresh_scans}")
         if self.map_uncertainty not in MAP_UNCERTAINTY:
             raise ValueError(f"map_uncertainty must be one of {MAP_UNCERTAINTY}, got {self.map_uncertainty!r}")
-
-
-@dataclass(frozen=True)
-class MapRegion:
-    """Error model of a map region (map frame): a shift of variance shift_var (m^2 per axis) plus a rotation
-    of variance yaw_var (rad^2) about pivot (2,) (m), plus a systematic shift sys (2,) (m; the mean over the
-    region's cells, whose second moment is sys_cov (2, 2), m^2)."""
-
-    shift_var: float
-    yaw_var: float
-    pivot: np.ndarray
-    sys: np.ndarray = dc_field(default_factory=lambda: np.zeros(2))
-    sys_cov: np.ndarray = dc_field(default_factory=lambda: np.zeros((2, 2)))
 
 
 @dataclass
@@ -217,7 +172,6 @@ class EstimatorStats:
     status_reason: str = ""
     gated_streak: int = 0  # consecutive key scans whose match the gate rejected
     lost_events: int = 0  # times the track became lost
-    map_switches: int = 0  # key scans whose matched cells had a smaller error model (map_switch_transfer)
     last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 
@@ -230,17 +184,9 @@ class PoseEstimator:
     Covariance. The EKF tracks the pose relative to the map built so far (odometry noise and match
     covariances; with ``correlated_matches``, ``ekf.actual_cov`` also counts the error consecutive matches
     share, see :mod:`glassmap.pose.filter`): that is what gates and fuses the matches. Reported alone it would
-    be overconfident, because the map itself is only as good as the poses that built it. By default
+    be overconfident, because the map itself is only as good as the poses that built it, so by default
     (``map_uncertainty = "chain"``) the reported covariance is the drift of the chain of key scans from the
-    start (:class:`~glassmap.pose.chain.DriftChain`). With "cells", every end-point cell refers instead to the
-    error model of its best placement (the key scan that placed the cell itself most precisely; a row per key
-    scan in a table of :data:`PLACEMENT_FIELDS`, the cell's row in the ``pose_placement`` layer): a shift
-    (``pose_var_shift``, m^2 per axis) and a rotation (``pose_var_yaw``, rad^2) about a pivot
-    (``pose_var_pivot_x/_y``, m); a match reads the model of the cells under its end points (``map_cov``,
-    ``map_region``: :meth:`matched_map_covariance`), and the reported covariance is ``ekf.actual_cov +
-    map_cov``. New cells inherit the matched region's rotation about its pivot (:meth:`store_map_variance`),
-    so along a corridor the sideways uncertainty grows linearly with the distance from where the map's
-    direction error came from; coming back to well-known ground makes it shrink again.
+    start (:class:`~glassmap.pose.chain.DriftChain`).
     """
 
     def __init__(self, config: EstimatorConfig = EstimatorConfig(), occupancy: OccupancyGrid | None = None) -> None:
@@ -263,10 +209,7 @@ class PoseEstimator:
         self._since_key = 0
         self._executor: ThreadPoolExecutor | None = None
         self._pending_field: Future | None = None  # a field rebuild running in the worker thread
-        self.map_cov = np.zeros((3, 3))  # covariance (m, m, rad) of the map region matched last
-        self.map_region: MapRegion | None = None  # its error model (None before the first match)
         self._matched_keys: np.ndarray | None = None  # wall blocks (map-frame keys) under the last match
-        self._fused_h = np.zeros((0, 3))  # directions (rows, pose space) the last key scan's match fused
         # the filter's state is the base at the newest odometry time at or before the scan (``_last_t``); the
         # motion extrapolated past it to the scan (base frame) is carried apart, with (s extrapolated, v m/s,
         # omega rad/s, s held beyond the limit), because the next odometry message replaces it
@@ -286,16 +229,6 @@ class PoseEstimator:
         # mapper's ``protect_mask``); called after the grid has grown to contain the scan
         self.protect_mask_fn = None
         self.last_key_scan: KeyScan | None = None  # the last key scan as placed (for a pose graph)
-        # the placements' error models (PLACEMENT_FIELDS), a row per key scan; the grid holds each cell's row
-        self._placements = np.array([_NO_PLACEMENT], dtype=np.float32)
-        self._n_placements = 1
-        if config.map_uncertainty == "cells":
-            g = self.occupancy.grid
-            for name, fill, dtype in ((MAP_VAR_LAYER, np.inf, np.float32), (MAP_PLACEMENT_LAYER, 0, np.int32)):
-                if name in g.layer_names:  # another estimator's placements: this one's table knows none of them
-                    g[name][...] = fill
-                else:
-                    g.add_layer(name, fill, dtype)
 
     # ------------------------------------------------------------------ inputs
     def predict(self, odom: Odometry) -> None:
@@ -396,18 +329,14 @@ class PoseEstimator:
                 protect = self.glass_protect_mask
             self.occupancy.integrate(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                      scan.geometry.range_max, protect=protect)
-        cells = cfg.map_uncertainty == "cells"
-        if ranges.size and write and (cells or cfg.subcell_walls):
+        if ranges.size and write and cfg.subcell_walls:
             # bookkeeping of the end points at the corrected pose, also when another component (the glass
             # mapper, ``integrate=False``) updates the occupancy grid with this scan at the same pose
             end = self._end_points(angles, ranges, scan.geometry.range_max)
             if not cfg.integrate and not self._grid_holds_scan(end, ranges):
                 self.occupancy.ensure_scan_extent(self.laser_pose_of(self.scan_pose()), angles, ranges,
                                                   scan.geometry.range_max)
-            if cells:
-                self.store_map_variance(angles, ranges, scan.geometry.range_max, end=end)
-            if cfg.subcell_walls:
-                self._store_hits(angles, ranges, scan.geometry.range_max, end=end)
+            self._store_hits(angles, ranges, scan.geometry.range_max, end=end)
         st.t_integrate = time.perf_counter() - t3
         self._key_pose = self.scan_pose()
         self.last_key_scan = KeyScan(
@@ -426,7 +355,6 @@ class PoseEstimator:
         direction: nothing to fuse, nothing contradicted)."""
         cfg, st = self.config, self.stats
         st.last_fused_dims = 0
-        self._fused_h = np.zeros((0, 3))
         if res is None:
             st.no_match += 1
             return False
@@ -436,8 +364,6 @@ class PoseEstimator:
         if h.shape[0] == 0:
             return True
         hm = None if h.shape[0] == 3 else h
-        if cfg.map_uncertainty == "cells" and cfg.map_switch_transfer and self.map_region is not None:
-            self._transfer_map_switch(pts, res.pose, h)
         z, r = self._measurement_at_state(res)
         _, _, d2 = self.ekf.innovation(z, r, hm)
         gate = cfg.gate_chi2 * _CHI2_9999_SHARE[h.shape[0]]
@@ -476,12 +402,9 @@ class PoseEstimator:
             self._scan_post = (scan.pose.copy(), scan.cov.copy())
         st.matched += 1
         st.last_fused_dims = h.shape[0]
-        self._fused_h = h
         if st.status == "lost":
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
-        if cfg.map_uncertainty == "cells":
-            self.map_cov, self.map_region = self.matched_map_covariance(pts, self.scan_pose())
         return True
 
     def deskewed(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
@@ -584,130 +507,6 @@ class PoseEstimator:
         sx, sy, n = (g[name] for name in HIT_LAYERS)
         add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
 
-    # ------------------------------------------------------------------ map uncertainty
-    def _transfer_map_switch(self, pts: np.ndarray, pose: np.ndarray, h: np.ndarray | None = None) -> None:
-        """Add to the filter's covariance the decrease from the map part of the cells matched before to that
-        of the cells under ``pts`` at ``pose`` (``EstimatorConfig.map_switch_transfer``), in the directions
-        ``h`` (rows, pose space) the match constrains (default: all)."""
-        _, region = self.matched_map_covariance(pts, pose)
-        if region is None or region is self.map_region:  # no matched cell has an error model: nothing switched
-            return
-        before = self.region_covariance(self.map_region, pose, systematic=False)
-        w, v = np.linalg.eigh(before - self.region_covariance(region, pose, systematic=False))
-        if w[-1] <= 0.0:
-            return
-        drop = (v * np.maximum(w, 0.0)) @ v.T
-        if h is not None and h.shape[0] < 3:
-            proj = h.T @ np.linalg.solve(h @ h.T, h)
-            drop = proj @ drop @ proj.T
-        self.ekf.cov = self.ekf.cov + drop
-        self.ekf.actual_cov = self.ekf.actual_cov + drop
-        self.stats.map_switches += 1
-
-    def matched_map_covariance(self, pts: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, MapRegion | None]:
-        """3x3 covariance (x, y, yaw; map frame) of the map region under the matched end points (base-frame
-        pts at pose), and that region's error model (None when no matched cell has one).
-
-        A cell's error is a rigid displacement of the map around it: a shift (variance s per axis) plus a
-        rotation d_th (variance v) about a pivot A (``pose_var_shift``, ``pose_var_yaw``, ``pose_var_pivot_x/_y``
-        of the cell's placement; see :meth:`store_map_variance`). A robot at X matched against it inherits
-        both: position error shift + d_th * u with u = perp(X - A), yaw error d_th, so per cell
-        diag(s, s, 0) + v [u; 1][u; 1]^T: anisotropic (a yaw error of the map far behind the robot moves it
-        sideways, not along the corridor) and correlated with yaw. The matched cells share their error (they
-        were placed by a chain of matches), so the region moves as they all do: by mean(sqrt(s)) along each axis and a rotation
-        of mean(sqrt(v)) about the sqrt(v)-weighted mean pivot. (A mean of the variances would let the few
-        cells placed from far away dominate.)"""
-        g = self.occupancy.grid
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        xy = pose[:2] + pts @ np.array([[c, s], [-s, c]])
-        cells = g.world_to_cell(xy)
-        ok = g.in_bounds(cells)
-        cy, cx = cells[ok, 1], cells[ok, 0]
-        model = self._placements[g[MAP_PLACEMENT_LAYER][cy, cx]].astype(np.float64)  # PLACEMENT_FIELDS per point
-        fin = np.isfinite(model[:, 0])
-        if not fin.any():
-            return self.map_cov, self.map_region
-        model = model[fin]
-        # contiguous, as the products and sums below were written for
-        vyaw, pivot, shift, sys = (np.ascontiguousarray(model[:, k]) for k in (0, slice(1, 3), 3, slice(4, 6)))
-        sv, ss = np.sqrt(np.maximum(vyaw, 0.0)), np.sqrt(np.maximum(shift, 0.0))
-        if sv.sum() > 0:
-            centre = (sv @ pivot) / sv.sum()  # one rotation of sd mean(sv) about here moves every cell as all did
-        else:
-            centre = pivot.mean(axis=0)
-        region = MapRegion(float(ss.mean()) ** 2, float(sv.mean()) ** 2, centre, sys.mean(axis=0),
-                           sys.T @ sys / len(sys))
-        return self.region_covariance(region, pose), region
-
-    def region_covariance(self, region: MapRegion, pose: np.ndarray, systematic: bool = True) -> np.ndarray:
-        """3x3 covariance (x, y, yaw; map frame) a robot at base ``pose`` inherits from a map region's error
-        model (see :meth:`matched_map_covariance`); ``systematic=False`` leaves out the systematic part."""
-        lever = self.laser_pose_of(pose)[:2] - region.pivot  # the robot relative to the region's pivot
-        u = np.array([-lever[1], lever[0], 1.0])  # d(error)/d(d_th)
-        out = region.yaw_var * np.outer(u, u)
-        out[0, 0] += region.shift_var
-        out[1, 1] += region.shift_var
-        if systematic:
-            out[:2, :2] += region.sys_cov
-        return out
-
-    def store_map_variance(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
-                           end: np.ndarray | None = None) -> None:
-        """Give the end-point cells of this scan the error model of their placement where its own variance
-        (of the cell's position) is smaller than what the cell holds (the best placement is kept).
-
-        The placement's error is that of the matched region (shift s_R, rotation v_R about A_R) plus the
-        filter's error relative to it (``ekf.actual_cov``: shift, and a rotation about the laser position X).
-        The two rotations are stored as one, of variance v = v_R + P_th about the variance-weighted pivot
-        A = (v_R A_R + P_th X) / v, the rest going into the shift. The pivot is inherited, not reset to X:
-        a wall extended from a matched wall keeps its direction error, so along a corridor the sideways
-        error grows linearly with the distance from where that error came from, not like a random walk.
-
-        The systematic error of the placement is the region's mean one plus ``map_bias_per_match`` along the
-        laser's viewing direction (the bias of this match relative to the region), in the directions the match
-        fused only (along a featureless corridor the match says nothing along it, so it adds no bias there; a
-        scan placed by odometry alone adds none); it enters the cell's own variance as its squared length.
-        ``end``: the end points (:meth:`_end_points`) if already computed."""
-        if end is None:
-            end = self._end_points(angles, ranges, range_max)
-        if not len(end):
-            return
-        g = self.occupancy.grid
-        lp = self.laser_pose_of(self.scan_pose())
-        x = lp[:2]
-        p = self.scan_relative_covariance()
-        pth = float(p[2, 2])
-        reg = self.map_region if self.map_region is not None else MapRegion(0.0, 0.0, x)
-        vyaw = reg.yaw_var + pth
-        pivot = (reg.yaw_var * reg.pivot + pth * x) / vyaw if vyaw > 0 else x
-        # the shift per axis: the region's, the filter's, and the spread of the two pivots about the new one
-        shift = (reg.shift_var + 0.5 * float(np.trace(p[:2, :2]))
-                 + 0.5 * (reg.yaw_var * float(np.sum((reg.pivot - pivot) ** 2)) + pth * float(np.sum((x - pivot) ** 2))))
-        h = self._fused_h
-        bias = self.config.map_bias_per_match * np.array([np.cos(lp[2]), np.sin(lp[2]), 0.0])
-        if h.shape[0] < 3:  # its projection on the fused directions
-            bias = np.linalg.pinv(h) @ (h @ bias) if h.shape[0] else np.zeros(3)
-        sys = reg.sys + bias[:2]
-        # the cell's own variance where smaller than before; the cells it fell in take this placement's model
-        index = self.add_placement((vyaw, pivot[0], pivot[1], shift, sys[0], sys[1]))
-        keep_best_placement(g[MAP_VAR_LAYER], g[MAP_PLACEMENT_LAYER], end, float(g.origin[0]), float(g.origin[1]),
-                            float(g.resolution), shift + float(sys @ sys), vyaw, float(pivot[0]), float(pivot[1]),
-                            index)
-
-    def add_placement(self, model: tuple[float, ...]) -> int:
-        """Append a placement's error model (PLACEMENT_FIELDS, stored as float32) to the table; its row."""
-        if self._n_placements == len(self._placements):
-            self._placements = np.concatenate([self._placements, np.empty_like(self._placements)])
-        self._placements[self._n_placements] = model
-        self._n_placements += 1
-        return self._n_placements - 1
-
-    def placement_field(self, name: str) -> np.ndarray:
-        """(H, W) float32 map of one of :data:`PLACEMENT_FIELDS` of every cell's best placement (inf / 0 where
-        no key scan placed the cell), e.g. ``"pose_var_yaw"``: for inspection and tests."""
-        g = self.occupancy.grid
-        return self._placements[:self._n_placements, PLACEMENT_FIELDS.index(name)][g[MAP_PLACEMENT_LAYER]]
-
     # ------------------------------------------------------------------ outputs
     def scan_pose(self) -> np.ndarray:
         """Base pose (3,) in the map frame at the last scan's stamp: the filter's pose (at the newest odometry
@@ -740,13 +539,12 @@ class PoseEstimator:
 
     def covariance(self) -> np.ndarray:
         """Reported 3x3 covariance (map frame) at the last scan (``EstimatorConfig.map_uncertainty``). "chain":
-        the key scans' drift from the start carried to the scan plus :meth:`off_chain_covariance`. "cells": the
-        filter's (relative to the map, see :meth:`scan_relative_covariance`) plus the matched map region's.
-        "off": the filter's."""
+        the key scans' drift from the start carried to the scan plus :meth:`off_chain_covariance`. "off": the
+        filter's, relative to the map built so far (:meth:`scan_relative_covariance`)."""
         if self.config.map_uncertainty == "chain":
             stamp = 0.0 if self._last_stamp is None else self._last_stamp
             return self.chain.covariance_at(self.scan_pose(), stamp) + self.off_chain_covariance()
-        return self.scan_relative_covariance() + self._carried(self.map_cov)
+        return self.scan_relative_covariance()
 
     def off_chain_covariance(self) -> np.ndarray:
         """3x3 covariance (map frame) of what the chain of key scans does not hold: the pose held past the

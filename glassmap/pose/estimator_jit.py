@@ -48,38 +48,6 @@ def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray,
         count[iy, ix] += np.float32(1.0)
 
 
-@_jit
-def keep_best_placement(var: np.ndarray, placement: np.ndarray, end: np.ndarray, ox: float, oy: float,
-                        res: float, base: float, vyaw: float, px: float, py: float, index: int) -> None:
-    """Each end point's cell variance float32(base + vyaw |p - (px, py)|^2) into ``var`` ((h, w) float32)
-    where smaller than the cell held before this scan (np.minimum, NaN propagates), and ``index`` into
-    ``placement`` ((h, w) int32) at the cells whose variance fell."""
-    h, w = var.shape
-    n = end.shape[0]
-    cy = np.empty(n, np.int64)
-    cx = np.empty(n, np.int64)
-    before = np.empty(n, np.float32)
-    cell_var = np.empty(n, np.float32)
-    m = 0  # the points on the grid
-    for i in range(n):
-        ix = np.int64(np.floor((end[i, 0] - ox) / res))
-        iy = np.int64(np.floor((end[i, 1] - oy) / res))
-        if ix < 0 or ix >= w or iy < 0 or iy >= h:
-            continue
-        dx, dy = end[i, 0] - px, end[i, 1] - py
-        cy[m], cx[m], before[m] = iy, ix, var[iy, ix]
-        cell_var[m] = np.float32(base + vyaw * (dx * dx + dy * dy))
-        m += 1
-    for k in range(m):
-        v = cell_var[k]
-        if v < var[cy[k], cx[k]] or v != v:  # np.minimum: the smaller, or a NaN
-            var[cy[k], cx[k]] = v
-    for k in range(m):
-        iy, ix = cy[k], cx[k]
-        if var[iy, ix] < before[k]:
-            placement[iy, ix] = index
-
-
 def warm_up() -> None:
     """Load (or, the first time on a machine, compile) these kernels now, with the argument types the
     estimator passes, rather than at the first scan."""
@@ -87,4 +55,3 @@ def warm_up() -> None:
     end = np.zeros((1, 2))
     registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
     add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
-    keep_best_placement(lay[0], np.zeros((2, 2), np.int32), end, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1)

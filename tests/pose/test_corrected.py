@@ -74,13 +74,12 @@ def test_online_sigma_relative_to_the_map_leaves_out_the_maps_own_uncertainty():
     from glassmap.types import Odometry
     from tests.pose.synth import make_scan, room_with_corner
 
-    est = PoseEstimator(EstimatorConfig(initial_pose=(-1.5, -1.0, 0.0), laser_mount=(0.0, 0.0, 0.0),
-                                        map_uncertainty="cells"))
+    est = PoseEstimator(EstimatorConfig(initial_pose=(-1.5, -1.0, 0.0), laser_mount=(0.0, 0.0, 0.0)))
     rng = np.random.default_rng(0)
     for k in range(5):
         est.predict(Odometry(stamp=0.025 * k, x=0.0, y=0.0, yaw=0.0))
         est.update(make_scan(room_with_corner(), np.array([-1.5, -1.0, 0.0]), stamp=0.025 * k, noise=0.01, rng=rng))
-    est.map_cov = np.diag([0.05 ** 2, 0.05 ** 2, np.radians(1.0) ** 2])
+    est.chain.cov = np.diag([0.05 ** 2, 0.05 ** 2, np.radians(1.0) ** 2])  # the map's drift so far
     e = est.estimate()
     r = np.array([1.0, 8.0, np.inf])
     anchor, to_map = online_sigma(est, e, r, "anchor"), online_sigma(est, e, r, "map")

@@ -8,7 +8,6 @@ import pytest
 
 from glassmap.grid import MapGrid, OccupancyGrid
 from glassmap.pose import EstimatorConfig, PoseEstimator
-from glassmap.pose.estimator import MapRegion
 from glassmap.pose.motion import compose
 from glassmap.types import LaserGeometry, Odometry, PoseEstimate, Scan
 from tests.pose.synth import make_scan, room_with_corner
@@ -215,124 +214,6 @@ def test_the_second_key_scan_is_matched_even_when_the_grid_did_not_grow():
     assert est.stats.no_match == 1 and est.stats.matched == 2
 
 
-def test_map_covariance_adds_the_lever_arm_of_the_placement_yaw_error():
-    """Cells placed from (0, 0) with position variance 1 cm^2 and yaw variance (0.01 rad)^2: a robot 4 m
-    further along x that matches them inherits the placement's yaw error as a sideways (y) error of
-    4 m * 0.01 rad, correlated with yaw, and no extra error along x."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells"))
-    g = est.occupancy.grid
-    g.ensure_contains(np.array([-1.0, -3.0]), np.array([8.0, 3.0]))
-    pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])  # base frame of the robot at (4, 0)
-    pose = np.array([4.0, 0.0, 0.0])
-    cells = g.world_to_cell(pts + pose[:2])
-    sp2, sth2 = 1e-4, 1e-4
-    g["pose_var_xy"][cells[:, 1], cells[:, 0]] = sp2 + 25 * sth2
-    g["pose_placement"][cells[:, 1], cells[:, 0]] = est.add_placement((sth2, 0.0, 0.0, sp2, 0.0, 0.0))
-    cov, region = est.matched_map_covariance(pts, pose)
-    assert cov[0, 0] == pytest.approx(sp2, rel=1e-3)
-    assert cov[1, 1] == pytest.approx(sp2 + 16 * sth2, rel=1e-3)  # lever arm 4 m
-    assert cov[1, 2] == pytest.approx(4 * sth2, rel=1e-3) and cov[2, 2] == pytest.approx(sth2, rel=1e-3)
-    assert cov[0, 1] == pytest.approx(0.0, abs=1e-9)
-    assert region.yaw_var == pytest.approx(sth2) and region.shift_var == pytest.approx(sp2)
-    assert region.pivot == pytest.approx([0.0, 0.0], abs=1e-6)
-
-
-def test_a_wall_extended_from_a_matched_wall_keeps_its_direction_error():
-    """The robot at (4, 0) matched a region whose error is a rotation of (0.01 rad)^2 about (0, 0) and
-    places new cells with a filter covariance of (1 mm)^2 and (1 mrad)^2. The new cells keep the region's
-    rotation about (almost) its pivot, so a robot at (12, 0) matching only them inherits a sideways error
-    of 12 m * 0.01 rad (linear in the distance: the map's direction error persists), not the sum of the two
-    legs' squares (4^2 + 8^2) that a pivot reset to the placing position would give. (Without the
-    systematic match bias, which adds along the viewing direction: tested below.)"""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
-    g = est.occupancy.grid
-    g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
-    vr, pth = 1e-4, 1e-6
-    est.map_region = MapRegion(shift_var=0.0, yaw_var=vr, pivot=np.zeros(2))
-    est.ekf.pose = np.array([4.0, 0.0, 0.0])
-    est.ekf.cov = est.ekf.actual_cov = np.diag([1e-6, 1e-6, pth])
-    angles = np.array([0.5, 0.7, -0.5, -0.7])
-    ranges = np.full(4, 3.0)
-    est.store_map_variance(angles, ranges, 30.0)
-    pivot_x = pth * 4.0 / (vr + pth)  # the variance-weighted pivot: 4 cm from the origin
-    yaw = est.placement_field("pose_var_yaw")
-    placed = np.isfinite(yaw)
-    assert yaw[placed] == pytest.approx(vr + pth)
-    assert est.placement_field("pose_var_pivot_x")[placed] == pytest.approx(pivot_x, abs=1e-6)
-    pose2 = np.array([12.0, 0.0, 0.0])  # the same cells seen from 8 m further on
-    world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
-    assert cov[1, 1] == pytest.approx((vr + pth) * (12.0 - pivot_x) ** 2, rel=0.01)
-    assert cov[1, 1] > 1.4 * vr * (4.0 ** 2 + 8.0 ** 2)
-    # along the corridor only the shift: the filter's (1 mm)^2, plus the spread of the two pivots (the
-    # filter's yaw error turns about (4, 0), not about the stored pivot)
-    shift = 1e-6 + 0.5 * pth * (4.0 - pivot_x) ** 2 + 0.5 * vr * pivot_x ** 2
-    assert cov[0, 0] == pytest.approx(shift, rel=0.01)
-    assert region.pivot == pytest.approx([pivot_x, 0.0], abs=1e-6)
-
-
-def test_the_systematic_match_bias_adds_up_along_a_chain_of_placements():
-    """A region whose cells carry a systematic error of 2 mm along x, matched by a robot looking along x:
-    the cells it places carry 2 mm + map_bias_per_match (1 mm) along x, nothing along y; a robot matching
-    only them reports (3 mm)^2 along x and nothing more sideways; looking along y, the bias adds sideways."""
-    cfg = EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.001)
-    est = PoseEstimator(cfg)
-    g = est.occupancy.grid
-    g.ensure_contains(np.array([-1.0, -3.0]), np.array([16.0, 3.0]))
-    est.map_region = MapRegion(shift_var=0.0, yaw_var=0.0, pivot=np.zeros(2), sys=np.array([0.002, 0.0]),
-                               sys_cov=np.diag([0.002 ** 2, 0.0]))
-    est.ekf.pose = np.array([4.0, 0.0, 0.0])
-    est.ekf.cov = est.ekf.actual_cov = np.diag([1e-8, 1e-8, 1e-10])
-    est._fused_h = np.eye(3)  # as after a match that constrained every direction
-    angles = np.array([0.5, 0.7, -0.5, -0.7])
-    ranges = np.full(4, 3.0)
-    est.store_map_variance(angles, ranges, 30.0)
-    placed = np.isfinite(est.placement_field("pose_var_yaw"))
-    sys_x, sys_y = est.placement_field("pose_sys_x"), est.placement_field("pose_sys_y")
-    assert sys_x[placed] == pytest.approx(0.003) and sys_y[placed] == pytest.approx(0.0)
-    world = np.array([4.0, 0.0]) + 3.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    pose2 = np.array([5.0, 0.0, 0.0])
-    cov, region = est.matched_map_covariance(world - pose2[:2], pose2)
-    assert region.sys == pytest.approx([0.003, 0.0])
-    assert cov[0, 0] - region.shift_var == pytest.approx(0.003 ** 2, rel=1e-3)
-    assert cov[1, 1] - region.shift_var == pytest.approx(0.0, abs=1e-9)
-    # the next generation, placed looking along +y, adds the bias sideways
-    est.map_region = region
-    est.ekf.pose = np.array([5.0, 0.0, np.pi / 2])
-    est.store_map_variance(np.array([0.1]), np.array([1.0]), 30.0)
-    cell = g.world_to_cell(np.array([5.0 + np.cos(np.pi / 2 + 0.1), np.sin(np.pi / 2 + 0.1)]))
-    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == pytest.approx(0.003)
-    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == pytest.approx(0.001)
-
-
-def test_the_match_bias_enters_only_the_directions_the_match_fused():
-    """Along a featureless corridor (x) the match fuses y and yaw only: looking along x it adds no bias;
-    a scan placed without a match adds none either."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.001))
-    g = est.occupancy.grid
-    g.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
-    est._fused_h = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    est.ekf.pose = np.array([0.0, 0.0, 0.3])
-    est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
-    cell = g.world_to_cell(2.0 * np.array([np.cos(0.3), np.sin(0.3)]))
-    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == pytest.approx(0.0, abs=1e-9)
-    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == pytest.approx(0.001 * np.sin(0.3), rel=1e-5)
-    est._fused_h = np.zeros((0, 3))
-    est.ekf.pose = np.array([0.0, 0.0, -1.0])
-    est.store_map_variance(np.array([0.0]), np.array([2.0]), 30.0)
-    cell = g.world_to_cell(2.0 * np.array([np.cos(-1.0), np.sin(-1.0)]))
-    assert est.placement_field("pose_sys_x")[cell[1], cell[0]] == 0.0
-    assert est.placement_field("pose_sys_y")[cell[1], cell[0]] == 0.0
-
-
-def test_without_the_match_bias_the_map_carries_no_systematic_error():
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
-    est.occupancy.grid.ensure_contains(np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
-    est.store_map_variance(np.array([0.0, 1.0]), np.array([2.0, 2.0]), 30.0)
-    assert np.isfinite(est.placement_field("pose_var_yaw")).sum() == 2  # two cells placed
-    assert not np.any(est.placement_field("pose_sys_x")) and not np.any(est.placement_field("pose_sys_y"))
-
-
 def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
     """Odometry at 10 Hz, scans at 40 Hz: a scan 75 ms after the newest message is predicted with that
     message's velocity, whose yaw-rate error (0.1 rad/s by default) turns it by up to 7.5 mrad; the reported
@@ -347,7 +228,7 @@ def test_scans_after_the_newest_odometry_report_the_extrapolation_error():
     assert e1.covariance[1, 1] > e0.covariance[1, 1] + (0.5 * 0.5 * 0.075 * 0.1 * 0.075) ** 2 * 0.99
     est.predict(Odometry(stamp=0.1, x=0.05, y=0.0, yaw=0.0, v=0.5, omega=0.0))
     e2 = est.update(_scan(inf, 0.1))
-    assert e2.covariance[2, 2] == pytest.approx(est.ekf.cov[2, 2] + est.map_cov[2, 2])
+    assert e2.covariance[2, 2] == pytest.approx(est.ekf.cov[2, 2])
 
 
 def test_scan_relative_covariance_follows_the_filter_and_hands_out_copies():
@@ -380,31 +261,3 @@ def test_grid_holds_scan_only_when_ensure_scan_extent_would_not_grow(no_return_r
         assert not (holds and grew)
         skipped += holds
     assert skipped > 5  # (with no_return_range > 0, only scans without an inf range can skip)
-
-
-def test_coming_back_onto_older_map_moves_the_drop_of_the_map_part_into_the_filter():
-    """The last match was against cells with a shift variance of (3 cm)^2 (new map, placed after a long
-    drive); the next matches cells of the start with (2 mm)^2. The estimate is still relative to the newer
-    cells, which differ from the older by the drift in between: the filter's covariance grows by the drop,
-    (3 cm)^2 - (2 mm)^2 per axis, so the total does not fall before a match has moved the estimate. Coming
-    onto cells with a larger error model transfers nothing."""
-    est = PoseEstimator(EstimatorConfig(laser_mount=(0.0, 0.0, 0.0), map_uncertainty="cells", map_bias_per_match=0.0))
-    g = est.occupancy.grid
-    g.ensure_contains(np.array([-2.0, -3.0]), np.array([8.0, 3.0]))
-    pts = np.array([[1.0, 2.0], [2.0, -2.0], [3.0, 1.5], [-1.0, 2.0]])
-    pose = np.array([0.0, 0.0, 0.0])
-    cells = g.world_to_cell(pts + pose[:2])
-    old, new = 0.03 ** 2, 0.002 ** 2
-    g["pose_var_xy"][cells[:, 1], cells[:, 0]] = new
-    g["pose_placement"][cells[:, 1], cells[:, 0]] = est.add_placement((0.0, 0.0, 0.0, new, 0.0, 0.0))
-    est.map_region = MapRegion(shift_var=old, yaw_var=0.0, pivot=np.zeros(2))
-    before = est.ekf.cov.copy()
-    est._transfer_map_switch(pts, pose)
-    np.testing.assert_allclose(est.ekf.cov - before, np.diag([old - new, old - new, 0.0]), atol=1e-12)
-    np.testing.assert_allclose(est.ekf.actual_cov, est.ekf.cov)
-    assert est.stats.map_switches == 1
-    est.map_region = MapRegion(shift_var=1e-6, yaw_var=0.0, pivot=np.zeros(2))  # smaller than the cells'
-    after = est.ekf.cov.copy()
-    est._transfer_map_switch(pts, pose)
-    np.testing.assert_array_equal(est.ekf.cov, after)
-    assert est.stats.map_switches == 1

@@ -3,7 +3,7 @@
 import numpy as np
 
 from glassmap.grid import MapGrid
-from glassmap.pose.estimator_jit import add_hits, keep_best_placement, registration_sigmas
+from glassmap.pose.estimator_jit import add_hits, registration_sigmas
 
 
 def _end_points(rng, n):
@@ -52,33 +52,3 @@ def test_add_hits_equals_add_at():
         add_hits(*got, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
         for a, b in zip(got, want):
             assert a.tobytes() == b.tobytes()
-
-
-def test_keep_best_placement_equals_minimum_at():
-    rng = np.random.default_rng(3)
-    for k in range(20):
-        g, var0 = _grid(rng)
-        end = _end_points(rng, int(rng.integers(1, 400)))
-        base, vyaw = float(rng.uniform(0, 1e-3)), float(rng.uniform(0, 1e-4))
-        pivot = rng.uniform(-1, 1, 2)
-        if k == 0:
-            base = np.nan  # NaN propagates as in np.minimum
-        index = int(rng.integers(1, 1000))
-        placement0 = rng.integers(0, 1000, size=g.shape).astype(np.int32)
-        # the numpy code of PoseEstimator.store_map_variance
-        cells = g.world_to_cell(end)
-        ok = g.in_bounds(cells)
-        cells, e = cells[ok], end[ok]
-        flat = cells[:, 1] * g.shape[1] + cells[:, 0]
-        var = (base + vyaw * np.sum((e - pivot) ** 2, axis=1)).astype(np.float32)
-        want_var, want = var0.copy(), placement0.copy()
-        lay = want_var.reshape(-1)
-        before = lay[flat]
-        with np.errstate(invalid="ignore"):
-            np.minimum.at(lay, flat, var)
-        want.reshape(-1)[flat[lay[flat] < before]] = index
-        got_var, got = var0.copy(), placement0.copy()
-        keep_best_placement(got_var, got, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution), base,
-                            vyaw, float(pivot[0]), float(pivot[1]), index)
-        assert got_var.tobytes() == want_var.tobytes()
-        assert got.tobytes() == want.tobytes()
