@@ -29,8 +29,8 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
-from glassmap.pose.estimator_jit import add_hits, registration_sigmas
 from glassmap.pose.chain import ChainConfig, DriftChain
+from glassmap.pose.estimator_jit import add_hits, registration_sigmas
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF
 from glassmap.pose.filter_jit import carried, rotated
