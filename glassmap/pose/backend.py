@@ -35,7 +35,7 @@ from glassmap.pose.chain import ChainConfig, partial_step
 from glassmap.pose.corrected import MapRebuild, rebuild_maps
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.loop_closure import LoopCloser, LoopClosureConfig
-from glassmap.pose.motion import compose, compose_jacobians, relative
+from glassmap.pose.motion import compose, compose_covariance, compose_jacobians, relative
 from glassmap.pose.submaps import SubmapConfig, SubmapStore
 from glassmap.types import PoseEstimate, wrap_angle
 
@@ -180,8 +180,7 @@ class GraphBackEnd:
         cov, rel = np.zeros((3, 3)), np.zeros(3)
         for i in range(a, b):  # hundreds of 3x3 steps, once per accepted closure
             e = relative(self.keys[i].pose, self.keys[i + 1].pose)
-            ja, jb = compose_jacobians(rel, e)
-            cov = ja @ cov @ ja.T + jb @ self._scaled(i) @ jb.T
+            cov = compose_covariance(rel, e, cov, self._scaled(i))
             rel = compose(rel, e)
         return cov
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from glassmap.pose.keyscan import KeyScan
-from glassmap.pose.motion import MotionNoise, compose_jacobians, relative
+from glassmap.pose.motion import MotionNoise, compose_covariance, relative
 
 
 def relative_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
@@ -77,10 +77,8 @@ class ChainConfig:
         """Covariance (3, 3, map frame) of ``compose(node, rel)``: a key scan's pose ``node`` of covariance
         ``cov`` carried along the front end's motion ``rel`` since it (over ``dt`` s), plus that motion's own
         odometry noise and ``min_sigma`` (an unscaled step to a pose that is not a key scan)."""
-        ja, jb = compose_jacobians(node, rel)
         q = self.motion.covariance(rel, max(dt, 0.0)) + np.diag(np.square(self.min_sigma))
-        out = ja @ np.asarray(cov, dtype=np.float64) @ ja.T + jb @ q @ jb.T
-        return 0.5 * (out + out.T)
+        return compose_covariance(node, rel, cov, q)
 
 
 def partial_step(prev: KeyScan, key: KeyScan) -> bool:
@@ -103,9 +101,7 @@ class DriftChain:
         if self.key is not None:
             cfg = self.config
             step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
-            ja, jb = compose_jacobians(self.key.pose, relative(self.key.pose, key.pose))
-            cov = ja @ self.cov @ ja.T + jb @ step @ jb.T
-            self.cov = 0.5 * (cov + cov.T)
+            self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
         self.key = key
 
     def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from glassmap.pose.motion import compose, compose_jacobians
+from glassmap.pose.motion import compose, compose_covariance, compose_jacobians
 
 
 class PoseGraphError(RuntimeError):
@@ -182,6 +182,5 @@ class PoseGraph:
             self._held = (k, rot @ np.asarray(self._isam.marginalCovariance(k)) @ rot.T)
         cov = self._held[1]
         for e in self.edges[len(self.edges) - pending:]:  # at most one batch of sequential edges
-            ja, jb = compose_jacobians(self._poses[e.a], e.rel)
-            cov = ja @ cov @ ja.T + jb @ e.cov @ jb.T
+            cov = compose_covariance(self._poses[e.a], e.rel, cov, e.cov)
         return 0.5 * (cov + cov.T)

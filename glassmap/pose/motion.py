@@ -52,6 +52,14 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ja, jb
 
 
+def compose_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3, symmetric) of ``compose(a, b)`` for a pose a (3,) of covariance cov_a (a's parent
+    frame) and a relative pose b (3,) of independent covariance cov_b (a's frame): first order."""
+    ja, jb = compose_jacobians(a, b)
+    out = ja @ np.asarray(cov_a, dtype=np.float64) @ ja.T + jb @ np.asarray(cov_b, dtype=np.float64) @ jb.T
+    return 0.5 * (out + out.T)
+
+
 @dataclass(frozen=True)
 class MotionNoise:
     """Noise of one relative odometry motion (dx, dy, dyaw) in the base frame, as standard deviations.

@@ -152,3 +152,13 @@ def test_estimator_deskews_key_scans_with_its_odometry():
     assert a[0] == pytest.approx(g.angles[0], abs=1e-12)
     assert a[-1] - g.angles[-1] == pytest.approx(sweep * 1.0, rel=1e-6)  # extrapolated with omega
     assert np.allclose(r, 2.0)
+
+
+def test_compose_covariance_is_the_first_order_spread_of_compose():
+    """A pose 1 m along x turned by 90 deg: a yaw error of the first pose moves the composed one sideways by the
+    lever arm, the second pose's x error appears along the first pose's y."""
+    from glassmap.pose.motion import compose_covariance
+
+    a, b = np.array([0.0, 0.0, np.pi / 2]), np.array([1.0, 0.0, 0.0])
+    cov = compose_covariance(a, b, np.diag([0.0, 0.0, 1e-4]), np.diag([4e-4, 0.0, 0.0]))
+    np.testing.assert_allclose(cov, np.array([[1e-4, 0.0, -1e-4], [0.0, 4e-4, 0.0], [-1e-4, 0.0, 1e-4]]), atol=1e-15)
