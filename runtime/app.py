@@ -81,6 +81,7 @@ class RunSummary:
     pose_status: str = ""  # the pose estimator's track status at the end ("ok", "degraded", "lost")
     pose_gated: int = 0  # scan matches rejected by the estimator's gate (neither fused nor mapped)
     pose_lost: int = 0  # times the track was lost
+    pose_ambiguous: int = 0  # streaks of rejected matches that disagreed with each other (followed odometry)
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -457,6 +458,7 @@ class Runtime:
         if est is not None:
             s = self.summary
             s.pose_status, s.pose_gated, s.pose_lost = est.stats.status, est.stats.gated, est.stats.lost_events
+            s.pose_ambiguous = est.stats.ambiguous_events
 
 
 def _record_info_logs(handler: logging.Handler):

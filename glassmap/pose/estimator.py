@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field as dc_field
 
@@ -32,7 +33,7 @@ from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.chain import ChainConfig, DriftChain
 from glassmap.pose.estimator_jit import add_hits, registration_sigmas
 from glassmap.pose.field import FieldParams, LikelihoodField
-from glassmap.pose.filter import PoseEKF
+from glassmap.pose.filter import PoseEKF, offset_consensus
 from glassmap.pose.filter_jit import carried, rotated
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
@@ -45,6 +46,24 @@ log = logging.getLogger(__name__)
 GLASS_LAYER = "glass"
 # chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
 _CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
+_CHI2_9999_BY_DOF: dict[int, float] = {}
+
+
+def _chi2_9999(dof: int) -> float:
+    """The chi-square 99.99 % point for ``dof`` degrees of freedom."""
+    if dof not in _CHI2_9999_BY_DOF:
+        from scipy.stats import chi2
+
+        _CHI2_9999_BY_DOF[dof] = float(chi2.ppf(0.9999, dof))
+    return _CHI2_9999_BY_DOF[dof]
+
+
+def _psd(m: np.ndarray) -> np.ndarray:
+    """The symmetric part of ``m`` with negative eigenvalues set to 0."""
+    vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
+    return (vecs * np.maximum(vals, 0.0)) @ vecs.T
+
+
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 MAP_UNCERTAINTY = ("chain", "off")  # EstimatorConfig.map_uncertainty
 
@@ -81,10 +100,14 @@ class EstimatorConfig:
         information of at least this many points squarely facing it (see
         :func:`~glassmap.pose.matcher.constrained_directions`); the others (along a featureless corridor)
         are not measured by the scan, and the covariance keeps growing along them.
-    lost_after: this many consecutive key scans whose match was rejected by the gate make the track
-        ``lost`` (status of :class:`~glassmap.types.PoseEstimate`; logged as an error): the estimate then
-        follows odometry with a growing covariance and the map is not updated until a match passes the gate
-        again (the search window grows with the covariance, up to the matcher's maximum).
+    lost_after: this many consecutive key scans whose match was rejected by the gate are judged together.
+        If they agree with each other (one common offset from the prediction), the prediction is wrong: the
+        track is ``lost`` (status of :class:`~glassmap.types.PoseEstimate`; logged as an error), the
+        covariance is widened by that offset and the map is not updated until a match passes the gate again
+        (the search window grows with the covariance, up to the matcher's maximum). If they also disagree
+        with each other (aliases of a repetitive corridor), the matches are ambiguous: the track stays
+        ``degraded`` (logged as a warning), the estimate follows odometry with its growing covariance, and
+        the rejected scans stay out of the map.
     glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
         glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5); behind_glass_weight
         multiplies the weight of beams that pass a believed-glass cell more than glass_behind_margin (m)
@@ -172,6 +195,7 @@ class EstimatorStats:
     status_reason: str = ""
     gated_streak: int = 0  # consecutive key scans whose match the gate rejected
     lost_events: int = 0  # times the track became lost
+    ambiguous_events: int = 0  # streaks of gated matches that disagreed with each other (not relocalised on)
     last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 
@@ -202,6 +226,8 @@ class PoseEstimator:
         self.field = LikelihoodField(config.likelihood)
         self.matcher = CorrelativeMatcher(config.matcher)
         self.stats = EstimatorStats()
+        # the streak of gated matches: (offset from the prediction, covariance, directions, filter covariance)
+        self._gated: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=config.lost_after)
         self._last_odom: np.ndarray | None = None
         self._last_stamp: float | None = None
         self._since_rebuild = 0
@@ -370,19 +396,12 @@ class PoseEstimator:
         if d2 > gate:
             st.gated += 1
             st.gated_streak += 1
+            y = z - self.ekf.pose
+            y[2] = float(wrap_angle(y[2]))
+            self._gated.append((y, r, np.eye(3) if hm is None else hm, self.ekf.cov.copy()))
             if st.gated_streak >= cfg.lost_after:
                 if st.status != "lost":
-                    # the matches disagree with the prediction by about the innovation: the error is at least
-                    # that large, so the covariance (and with it the search window) is widened to cover it
-                    y = z - self.ekf.pose
-                    y[2] = float(wrap_angle(y[2]))
-                    self.ekf.cov = self.ekf.cov + np.outer(y, y)
-                    self.ekf.actual_cov = self.ekf.actual_cov + np.outer(y, y)
-                    st.lost_events += 1
-                    st.status_reason = (f"{st.gated_streak} consecutive scan matches disagree with the prediction "
-                                        f"beyond their covariance (last: squared distance {d2:.0f} > {gate:.1f})")
-                    log.error("pose track lost at scan %d: %s", seq, st.status_reason)
-                st.status = "lost"
+                    self._judge_gated_streak(seq, d2, gate)
             else:
                 if st.status == "ok":
                     st.status_reason = f"scan match rejected by the gate (squared distance {d2:.0f} > {gate:.1f})"
@@ -405,7 +424,39 @@ class PoseEstimator:
         if st.status == "lost":
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
+        self._gated.clear()
         return True
+
+    def _judge_gated_streak(self, seq: int, d2: float, gate: float) -> None:
+        """After ``lost_after`` consecutive matches rejected by the gate: if they agree with each other (one
+        common offset from the prediction, :func:`~glassmap.pose.filter.offset_consensus`), the prediction is
+        what is wrong: the track is lost and the covariance (with it the search window) is widened by that
+        offset, so the next such match relocalises. If they disagree with each other too (aliases of a
+        repetitive corridor), the matches are what is ambiguous: the estimate keeps following odometry with
+        its growing covariance, the status stays ``degraded`` and the scans stay out of the map."""
+        st, cfg = self.stats, self.config
+        ys, rs, hs, ps = zip(*self._gated)
+        p_now = self.ekf.cov
+        # the prediction drifted by odometry alone since each match (nothing was fused in the streak)
+        covs = [r + _psd(p_now - p) for r, p in zip(rs, ps)]
+        offset, chi2, dof = offset_consensus(list(ys), covs, list(hs))
+        if dof > 0 and chi2 > _chi2_9999(dof):
+            if not st.status_reason.startswith("ambiguous"):
+                st.ambiguous_events += 1
+                st.status_reason = (f"ambiguous scan matches: {st.gated_streak} in a row disagree with the "
+                                    f"prediction and with each other (chi-square {chi2:.0f}, {dof} dof); the "
+                                    f"estimate follows odometry")
+                log.warning("scan %d: %s", seq, st.status_reason)
+            st.status = "degraded"
+            return
+        self.ekf.cov = self.ekf.cov + np.outer(offset, offset)
+        self.ekf.actual_cov = self.ekf.actual_cov + np.outer(offset, offset)
+        st.lost_events += 1
+        st.status_reason = (f"{st.gated_streak} consecutive scan matches disagree with the prediction beyond their "
+                            f"covariance, by a common offset of ({offset[0]:.2f} m, {offset[1]:.2f} m, "
+                            f"{np.degrees(offset[2]):.1f} deg) (last: squared distance {d2:.0f} > {gate:.1f})")
+        log.error("pose track lost at scan %d: %s", seq, st.status_reason)
+        st.status = "lost"
 
     def deskewed(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
         """(angles, ranges) of ``scan`` as seen from the laser at ``scan.stamp`` (the first beam), undoing the

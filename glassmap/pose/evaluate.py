@@ -61,6 +61,7 @@ class Trajectory:
     closure_checks: int = 0
     chain_unscaled: int = 0
     lost_events: int = 0
+    ambiguous_events: int = 0
 
 
 @dataclass
@@ -104,6 +105,7 @@ class RunMetrics:
     lc_backend_ms_max: float = float("nan")
     gated: int = 0  # key-scan matches rejected by the gate
     lost_events: int = 0  # times the track became lost
+    ambiguous_events: int = 0  # streaks of gated matches that disagreed with each other (estimate kept on odometry)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -190,7 +192,8 @@ def run_estimator(run, config: EstimatorConfig | None = None, *, causal: bool = 
     traj = Trajectory(stamps=run.scan_stamps[kept], poses=poses, covs=covs, truth=run.scan_true_poses[kept],
                       odom=odom_map, t_core=t_core, t_field=t_field, t_integrate=t_int,
                       matched=est.stats.matched, no_match=est.stats.no_match, gated=est.stats.gated,
-                      key=key, lost_events=est.stats.lost_events)
+                      key=key, lost_events=est.stats.lost_events,
+                      ambiguous_events=est.stats.ambiguous_events)
     if backend is not None:
         _add_backend(traj, backend, run, np.asarray(key_scan, dtype=np.int64), last_key, corrected, corrected_covs,
                      t_back)
@@ -321,7 +324,8 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         t_core_key_median_ms=float(np.median(traj.t_core[traj.key]) * 1e3) if traj.key.any() else 0.0,
         t_field_mean_ms=float(np.mean(traj.t_field) * 1e3),
         t_integrate_mean_ms=float(np.mean(traj.t_integrate) * 1e3), gated=int(traj.gated),
-        lost_events=int(traj.lost_events), **lc)
+        lost_events=int(traj.lost_events),
+        ambiguous_events=int(traj.ambiguous_events), **lc)
 
 
 def evaluate_run(world: str, route: str | None, seed: int, config: EstimatorConfig | None = None, *,

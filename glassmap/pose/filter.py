@@ -76,3 +76,26 @@ class PoseEKF:
         self.actual_cov = 0.5 * (a + a.T)
         self.cross = ikh @ c + kh @ r
         return d2
+
+
+def offset_consensus(offsets: list[np.ndarray], covs: list[np.ndarray], dirs: list[np.ndarray]
+                     ) -> tuple[np.ndarray, float, int]:
+    """Do several pose offsets measure one and the same offset?
+
+    ``offsets[k]`` (3,) (m, m, rad; yaw wrapped) is match k minus the prediction at its time, ``covs[k]``
+    (3, 3) its covariance, ``dirs[k]`` (d_k, 3) the directions it measures (rows, as for
+    :meth:`PoseEKF.correct`). Returns (the weighted least-squares common offset (3,), zero where no
+    match measures it; the chi-square of the offsets about it; its degrees of freedom, the measured
+    directions minus the rank of their information). A chi-square far above its degrees of freedom means
+    the matches disagree with each other, e.g. several aliases of a repetitive corridor."""
+    info, b = np.zeros((3, 3)), np.zeros(3)
+    parts = []
+    for y, c, h in zip(offsets, covs, dirs):
+        u, s_inv = h @ y, np.linalg.inv(h @ c @ h.T)
+        info += h.T @ s_inv @ h
+        b += h.T @ s_inv @ u
+        parts.append((u, s_inv, h))
+    mean = np.linalg.pinv(info, hermitian=True) @ b
+    chi2 = sum(float((u - h @ mean) @ s_inv @ (u - h @ mean)) for u, s_inv, h in parts)
+    dof = sum(h.shape[0] for h in dirs) - int(np.linalg.matrix_rank(info, hermitian=True))
+    return mean, chi2, dof

@@ -1,6 +1,8 @@
 """Degenerate geometry and divergence: directions a scan does not constrain are not fused; a match that
 disagrees with the prediction is neither fused nor written into the map; several in a row lose the track."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -105,6 +107,29 @@ def test_an_odometry_jump_is_gated_not_mapped_and_the_track_is_reported_lost():
     g = est.occupancy.grid
     ghost = g.world_to_cell(np.array([[1.0, 2.5 + 0.6], [1.0, -2.0 + 0.6]]))
     assert np.all(est.occupancy.log_odds[ghost[:, 1], ghost[:, 0]] <= 0.6)
+
+
+def test_matches_that_disagree_with_each_other_too_are_ambiguous_and_the_estimate_follows_odometry():
+    """From scan 30 every match is moved by 0.4 m forward or 0.5 m back in turn (two aliases): they disagree
+    with the prediction and with each other, so no offset is relocalised on; the track is degraded, not
+    lost, and the estimate stays where odometry (exact here) puts it."""
+    est = PoseEstimator(EstimatorConfig(lost_after=3))
+    match, calls = est.matcher.match, [0]
+
+    def aliased(*args, **kwargs):
+        res = match(*args, **kwargs)
+        calls[0] += 1
+        if res is None or est.stats.scans < 30:
+            return res
+        shift = np.array([0.4 if calls[0] % 2 else -0.5, 0.0, 0.0])
+        return replace(res, pose=res.pose + shift, peak_pose=res.peak_pose + shift)
+
+    est.matcher.match = aliased
+    out = _drive_in_box(est, 80)
+    assert est.stats.gated >= 3 and est.stats.lost_events == 0 and est.stats.ambiguous_events == 1
+    assert all(e.status != "lost" for e, _ in out)
+    assert out[-1][0].status == "degraded" and est.stats.status_reason.startswith("ambiguous")
+    assert np.max([np.hypot(*(e.pose[:2] - t[:2])) for e, t in out]) < 0.02
 
 
 def test_consistent_driving_stays_ok():
