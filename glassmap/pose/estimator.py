@@ -101,13 +101,15 @@ class EstimatorConfig:
         :func:`~glassmap.pose.matcher.constrained_directions`); the others (along a featureless corridor)
         are not measured by the scan, and the covariance keeps growing along them.
     lost_after: this many consecutive key scans whose match was rejected by the gate are judged together.
-        If they agree with each other (one common offset from the prediction), the prediction is wrong: the
-        track is ``lost`` (status of :class:`~glassmap.types.PoseEstimate`; logged as an error), the
-        covariance is widened by that offset and the map is not updated until a match passes the gate again
-        (the search window grows with the covariance, up to the matcher's maximum). If they also disagree
-        with each other (aliases of a repetitive corridor), the matches are ambiguous: the track stays
-        ``degraded`` (logged as a warning), the estimate follows odometry with its growing covariance, and
-        the rejected scans stay out of the map.
+        If they agree with each other (one common offset from the prediction) and the last scan fits at its
+        match better than anywhere near the prediction (by ``relocalise_lead``, mean end-point
+        log-likelihood), the prediction is wrong: the track is ``lost`` (status of
+        :class:`~glassmap.types.PoseEstimate`; logged as an error), the covariance is widened by that offset
+        and the map is not updated until a match passes the gate again (the search window grows with the
+        covariance, up to the matcher's maximum). Otherwise the matches are ambiguous (aliases of a
+        repetitive corridor, which disagree with each other or fit no better than the prediction): the track
+        stays ``degraded`` (logged as a warning), the estimate follows odometry with its growing covariance,
+        and the rejected scans stay out of the map.
     glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
         glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5); behind_glass_weight
         multiplies the weight of beams that pass a believed-glass cell more than glass_behind_margin (m)
@@ -152,6 +154,7 @@ class EstimatorConfig:
     gate_chi2: float = 21.1
     constrained_points: float = 10.0
     lost_after: int = 5
+    relocalise_lead: float = 0.5
     glass_weighting: bool = False
     glass_min_weight: float = 0.1
     behind_glass_weight: float = 0.2
@@ -339,7 +342,7 @@ class PoseEstimator:
             res = self.matcher.match(self.field, pts, w, self.scan_pose(),
                                      self._carried(self.ekf.cov) + self.extrapolation_covariance())
         st.last_match = res
-        accepted = self._fuse(res, pts if res is not None else None, scan.seq)
+        accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -375,7 +378,7 @@ class PoseEstimator:
         st.scans += 1
         return self.estimate(stamp)
 
-    def _fuse(self, res: MatchResult | None, pts: np.ndarray | None, seq: int) -> bool:
+    def _fuse(self, res: MatchResult | None, pts: np.ndarray | None, w: np.ndarray | None, seq: int) -> bool:
         """Gate and fuse a key scan's match (the directions it constrains), update the track status;
         False when the match was rejected by the gate or there was none (True also when it constrained no
         direction: nothing to fuse, nothing contradicted)."""
@@ -401,7 +404,7 @@ class PoseEstimator:
             self._gated.append((y, r, np.eye(3) if hm is None else hm, self.ekf.cov.copy()))
             if st.gated_streak >= cfg.lost_after:
                 if st.status != "lost":
-                    self._judge_gated_streak(seq, d2, gate)
+                    self._judge_gated_streak(seq, d2, gate, res, pts, w)
             else:
                 if st.status == "ok":
                     st.status_reason = f"scan match rejected by the gate (squared distance {d2:.0f} > {gate:.1f})"
@@ -427,7 +430,25 @@ class PoseEstimator:
         self._gated.clear()
         return True
 
-    def _judge_gated_streak(self, seq: int, d2: float, gate: float) -> None:
+    def _lead_over_prediction(self, res: MatchResult, pts: np.ndarray, w: np.ndarray) -> float:
+        """How much better (mean end-point log-likelihood per unit weight) the scan fits at the match's peak than
+        at the best pose near the prediction (a 5 x 5 x 5 lattice over +-3 standard deviations of the filter's
+        covariance, at least +-1 cell and +-0.2 deg)."""
+        prior = self.scan_pose()
+        sd = np.sqrt(np.diag(self._carried(self.ekf.cov)))
+        half = 3.0 * np.maximum(sd, [self.field.resolution, self.field.resolution, np.radians(0.2)])
+        axes = [np.linspace(-h, h, 5) for h in half]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3) + prior
+        poses = np.vstack([res.peak_pose[None], grid])
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        x = poses[:, 0:1] + c * pts[None, :, 0] - s * pts[None, :, 1]
+        y = poses[:, 1:2] + s * pts[None, :, 0] + c * pts[None, :, 1]
+        ll = self.field.log_likelihood(np.stack([x.ravel(), y.ravel()], axis=1)).reshape(len(poses), -1)
+        score = ll @ w / w.sum()
+        return float(score[0] - score[1:].max())
+
+    def _judge_gated_streak(self, seq: int, d2: float, gate: float, res: MatchResult, pts: np.ndarray,
+                            w: np.ndarray) -> None:
         """After ``lost_after`` consecutive matches rejected by the gate: if they agree with each other (one
         common offset from the prediction, :func:`~glassmap.pose.filter.offset_consensus`), the prediction is
         what is wrong: the track is lost and the covariance (with it the search window) is widened by that
@@ -440,12 +461,20 @@ class PoseEstimator:
         # the prediction drifted by odometry alone since each match (nothing was fused in the streak)
         covs = [r + _psd(p_now - p) for r, p in zip(rs, ps)]
         offset, chi2, dof = offset_consensus(list(ys), covs, list(hs))
+        why = ""
         if dof > 0 and chi2 > _chi2_9999(dof):
+            why = f"disagree with the prediction and with each other (chi-square {chi2:.0f}, {dof} dof)"
+        else:
+            lead = self._lead_over_prediction(res, pts, w)
+            if lead < cfg.relocalise_lead:
+                why = (f"agree on an offset of {100 * np.hypot(offset[0], offset[1]):.0f} cm, "
+                       f"{np.degrees(offset[2]):.1f} deg, but the scan fits near the prediction about as well "
+                       f"(by {lead:.2f} per point)")
+        if why:
             if not st.status_reason.startswith("ambiguous"):
                 st.ambiguous_events += 1
-                st.status_reason = (f"ambiguous scan matches: {st.gated_streak} in a row disagree with the "
-                                    f"prediction and with each other (chi-square {chi2:.0f}, {dof} dof); the "
-                                    f"estimate follows odometry")
+                st.status_reason = (f"ambiguous scan matches: {st.gated_streak} in a row {why}; the estimate "
+                                    f"follows odometry")
                 log.warning("scan %d: %s", seq, st.status_reason)
             st.status = "degraded"
             return
