@@ -112,7 +112,8 @@ class Odometry:
 class PoseEstimate:
     """Pose of the base in the map frame with its 3x3 covariance over (x, y, yaw) (m^2, rad^2). status: the
     estimator's track, "ok", "degraded" (the last scan match disagreed with the prediction and was not
-    used) or "lost" (several in a row: the estimate follows odometry only; do not drive on it)."""
+    used; also after several such matches that disagree with each other: ambiguous, on odometry) or "lost"
+    (several in a row that agree: the prediction is wrong until a match relocalises it; do not drive on it)."""
 
     stamp: float
     x: float
