@@ -46,16 +46,19 @@ log = logging.getLogger(__name__)
 GLASS_LAYER = "glass"
 # chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
 _CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
-_CHI2_9999_BY_DOF: dict[int, float] = {}
+# chi-square 99.99 % points for 1..15 degrees of freedom (a streak of lost_after = 5 matches has at most 15)
+_CHI2_9999_BY_DOF = (15.14, 18.42, 21.11, 23.51, 25.74, 27.86, 29.88, 31.83, 33.72, 35.56, 37.37, 39.13, 40.87,
+                     42.58, 44.26)
 
 
 def _chi2_9999(dof: int) -> float:
-    """The chi-square 99.99 % point for ``dof`` degrees of freedom."""
-    if dof not in _CHI2_9999_BY_DOF:
-        from scipy.stats import chi2
-
-        _CHI2_9999_BY_DOF[dof] = float(chi2.ppf(0.9999, dof))
-    return _CHI2_9999_BY_DOF[dof]
+    """The chi-square 99.99 % point for ``dof`` >= 1 degrees of freedom: the table, beyond it the
+    Wilson-Hilferty approximation (within 1 % there). No scipy here: its first import stalls the scan path
+    for about a second."""
+    if dof <= len(_CHI2_9999_BY_DOF):
+        return _CHI2_9999_BY_DOF[dof - 1]
+    z = 3.7190164854556804  # the standard normal's 99.99 % point
+    return dof * (1.0 - 2.0 / (9.0 * dof) + z * np.sqrt(2.0 / (9.0 * dof))) ** 3
 
 
 def _psd(m: np.ndarray) -> np.ndarray:
@@ -101,9 +104,10 @@ class EstimatorConfig:
         :func:`~glassmap.pose.matcher.constrained_directions`); the others (along a featureless corridor)
         are not measured by the scan, and the covariance keeps growing along them.
     lost_after: this many consecutive key scans whose match was rejected by the gate are judged together.
-        If they agree with each other (one common offset from the prediction) and the last scan fits at its
-        match better than anywhere near the prediction (by ``relocalise_lead``, mean end-point
-        log-likelihood), the prediction is wrong: the track is ``lost`` (status of
+        If they agree with each other (one common offset from the prediction) and, for an offset that shifts
+        the pose by ``alias_min_shift`` (m) or more (an alias of a repetitive corridor is a door frame or so
+        away), the last scan fits at its match better than anywhere near the prediction (by
+        ``relocalise_lead``, mean end-point log-likelihood), the prediction is wrong: the track is ``lost`` (status of
         :class:`~glassmap.types.PoseEstimate`; logged as an error), the covariance is widened by that offset
         and the map is not updated until a match passes the gate again (the search window grows with the
         covariance, up to the matcher's maximum). Otherwise the matches are ambiguous (aliases of a
@@ -155,6 +159,7 @@ class EstimatorConfig:
     constrained_points: float = 10.0
     lost_after: int = 5
     relocalise_lead: float = 0.5
+    alias_min_shift: float = 0.1
     glass_weighting: bool = False
     glass_min_weight: float = 0.1
     behind_glass_weight: float = 0.2
@@ -464,7 +469,7 @@ class PoseEstimator:
         why = ""
         if dof > 0 and chi2 > _chi2_9999(dof):
             why = f"disagree with the prediction and with each other (chi-square {chi2:.0f}, {dof} dof)"
-        else:
+        elif np.hypot(offset[0], offset[1]) >= cfg.alias_min_shift:
             lead = self._lead_over_prediction(res, pts, w)
             if lead < cfg.relocalise_lead:
                 why = (f"agree on an offset of {100 * np.hypot(offset[0], offset[1]):.0f} cm, "

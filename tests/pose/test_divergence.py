@@ -141,6 +141,24 @@ def test_aliased_matches_are_ambiguous_and_the_estimate_follows_odometry(shifts)
     assert np.max([np.hypot(*(e.pose[:2] - t[:2])) for e, t in out]) < 0.02
 
 
+def test_a_consistent_heading_offset_is_relocalised_on():
+    """Matches that all turn the pose by 3 deg in place agree on an offset no corridor alias has (it moves the
+    pose by less than alias_min_shift): the heading is taken as wrong, the track lost and widened by it."""
+    est = PoseEstimator(EstimatorConfig(lost_after=3))
+    _aliased_matcher(est, lambda k: (0.0, 0.0, np.radians(3.0)))
+    _drive_in_box(est, 60)
+    assert est.stats.lost_events >= 1 and est.stats.ambiguous_events == 0
+
+
+def test_the_chi_square_points_match_scipy():
+    from scipy.stats import chi2
+
+    from glassmap.pose.estimator import _chi2_9999
+
+    for dof in range(1, 41):
+        assert _chi2_9999(dof) == pytest.approx(chi2.ppf(0.9999, dof), rel=0.01 if dof > 15 else 1e-3)
+
+
 def test_consistent_driving_stays_ok():
     est = PoseEstimator(EstimatorConfig())
     out = _drive_in_box(est, 60)
