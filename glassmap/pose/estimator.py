@@ -44,11 +44,11 @@ from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 log = logging.getLogger(__name__)
 
 GLASS_LAYER = "glass"
-# chi-square 99.99 % points by degrees of freedom, relative to 3 dof (EstimatorConfig.gate_chi2)
-_CHI2_9999_SHARE = {1: 15.14 / 21.11, 2: 18.42 / 21.11, 3: 1.0}
 # chi-square 99.99 % points for 1..15 degrees of freedom (a streak of lost_after = 5 matches has at most 15)
 _CHI2_9999_BY_DOF = (15.14, 18.42, 21.11, 23.51, 25.74, 27.86, 29.88, 31.83, 33.72, 35.56, 37.37, 39.13, 40.87,
                      42.58, 44.26)
+# the gate's points by directions fused, relative to 3 dof (EstimatorConfig.gate_chi2)
+_CHI2_9999_SHARE = {k: _CHI2_9999_BY_DOF[k - 1] / _CHI2_9999_BY_DOF[2] for k in (1, 2, 3)}
 
 
 def _chi2_9999(dof: int) -> float:
@@ -107,9 +107,9 @@ class EstimatorConfig:
         If they agree with each other (one common offset from the prediction) and, for an offset that shifts
         the pose by ``alias_min_shift`` (m) or more (an alias of a repetitive corridor is a door frame or so
         away), the last scan fits at its match better than anywhere near the prediction (by
-        ``relocalise_lead``, mean end-point log-likelihood), the prediction is wrong: the track is ``lost`` (status of
-        :class:`~glassmap.types.PoseEstimate`; logged as an error), the covariance is widened by that offset
-        and the map is not updated until a match passes the gate again (the search window grows with the
+        ``relocalise_lead``, mean end-point log-likelihood), the prediction is wrong: the track is ``lost``
+        (status of :class:`~glassmap.types.PoseEstimate`; logged as an error), the covariance is widened by
+        that offset and the map is not updated until a match passes the gate again (the search window grows with the
         covariance, up to the matcher's maximum). Otherwise the matches are ambiguous (aliases of a
         repetitive corridor, which disagree with each other or fit no better than the prediction): the track
         stays ``degraded`` (logged as a warning), the estimate follows odometry with its growing covariance,
@@ -203,7 +203,7 @@ class EstimatorStats:
     status_reason: str = ""
     gated_streak: int = 0  # consecutive key scans whose match the gate rejected
     lost_events: int = 0  # times the track became lost
-    ambiguous_events: int = 0  # streaks of gated matches that disagreed with each other (not relocalised on)
+    ambiguous_events: int = 0  # streaks of gated matches judged aliases (not relocalised on)
     last_fused_dims: int = 0  # directions fused on the last key scan (0: none)
 
 
@@ -455,11 +455,12 @@ class PoseEstimator:
     def _judge_gated_streak(self, seq: int, d2: float, gate: float, res: MatchResult, pts: np.ndarray,
                             w: np.ndarray) -> None:
         """After ``lost_after`` consecutive matches rejected by the gate: if they agree with each other (one
-        common offset from the prediction, :func:`~glassmap.pose.filter.offset_consensus`), the prediction is
-        what is wrong: the track is lost and the covariance (with it the search window) is widened by that
-        offset, so the next such match relocalises. If they disagree with each other too (aliases of a
-        repetitive corridor), the matches are what is ambiguous: the estimate keeps following odometry with
-        its growing covariance, the status stays ``degraded`` and the scans stay out of the map."""
+        common offset from the prediction, :func:`~glassmap.pose.filter.offset_consensus`) and, for a shift of
+        ``alias_min_shift`` or more, the scan prefers the match to anywhere near the prediction
+        (:meth:`_lead_over_prediction`), the prediction is what is wrong: the track is lost and the covariance
+        (with it the search window) is widened by that offset, so the next such match relocalises. Otherwise
+        (aliases of a repetitive corridor) the matches are what is ambiguous: the estimate keeps following
+        odometry with its growing covariance, the status stays ``degraded`` and the scans stay out of the map."""
         st, cfg = self.stats, self.config
         ys, rs, hs, ps = zip(*self._gated)
         p_now = self.ekf.cov
