@@ -81,7 +81,7 @@ class RunSummary:
     pose_status: str = ""  # the pose estimator's track status at the end ("ok", "degraded", "lost")
     pose_gated: int = 0  # scan matches rejected by the estimator's gate (neither fused nor mapped)
     pose_lost: int = 0  # times the track was lost
-    pose_ambiguous: int = 0  # streaks of rejected matches that disagreed with each other (followed odometry)
+    pose_ambiguous: int = 0  # streaks of rejected matches judged aliases (followed odometry)
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -105,7 +105,7 @@ class RunMetrics:
     lc_backend_ms_max: float = float("nan")
     gated: int = 0  # key-scan matches rejected by the gate
     lost_events: int = 0  # times the track became lost
-    ambiguous_events: int = 0  # streaks of gated matches that disagreed with each other (estimate kept on odometry)
+    ambiguous_events: int = 0  # streaks of gated matches judged aliases (estimate kept on odometry)
 
     def as_dict(self) -> dict:
         return asdict(self)
