@@ -61,6 +61,17 @@ def _chi2_9999(dof: int) -> float:
     return dof * (1.0 - 2.0 / (9.0 * dof) + z * np.sqrt(2.0 / (9.0 * dof))) ** 3
 
 
+def _offsets_second_moment(offsets, dirs, prior: np.ndarray) -> np.ndarray:
+    """Mean of y y^T over pose offsets (3,) of which only the directions ``dirs[k]`` (rows) are measured: the
+    unmeasured part of each is its expectation given the measured part under the covariance ``prior``
+    (P H^T (H P H^T)^-1 H y)."""
+    m = np.zeros((3, 3))
+    for y, h in zip(offsets, dirs):
+        v = prior @ h.T @ np.linalg.solve(h @ prior @ h.T, h @ y)
+        m += np.outer(v, v)
+    return m / len(offsets)
+
+
 def _psd(m: np.ndarray) -> np.ndarray:
     """The symmetric part of ``m`` with negative eigenvalues set to 0."""
     vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
@@ -236,6 +247,9 @@ class PoseEstimator:
         self.stats = EstimatorStats()
         # the streak of gated matches: (offset from the prediction, covariance, directions, filter covariance)
         self._gated: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=config.lost_after)
+        # while the streak is judged ambiguous: the second moment (map frame; m, rad) of its matches' offsets
+        # from the prediction, added to the reported covariance only (it does not open the gate)
+        self._alias_spread: np.ndarray | None = None
         self._last_odom: np.ndarray | None = None
         self._last_stamp: float | None = None
         self._since_rebuild = 0
@@ -433,6 +447,7 @@ class PoseEstimator:
             log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
         self._gated.clear()
+        self._alias_spread = None
         return True
 
     def _lead_over_prediction(self, res: MatchResult, pts: np.ndarray, w: np.ndarray) -> float:
@@ -460,7 +475,9 @@ class PoseEstimator:
         (:meth:`_lead_over_prediction`), the prediction is what is wrong: the track is lost and the covariance
         (with it the search window) is widened by that offset, so the next such match relocalises. Otherwise
         (aliases of a repetitive corridor) the matches are what is ambiguous: the estimate keeps following
-        odometry with its growing covariance, the status stays ``degraded`` and the scans stay out of the map."""
+        odometry with its growing covariance, the status stays ``degraded`` and the scans stay out of the map;
+        the reported covariance (:meth:`off_chain_covariance`, not the filter's) is widened by the second
+        moment of the matches' offsets, in case one of them is right, until a match is fused again."""
         st, cfg = self.stats, self.config
         ys, rs, hs, ps = zip(*self._gated)
         p_now = self.ekf.cov
@@ -483,7 +500,9 @@ class PoseEstimator:
                                     f"follows odometry")
                 log.warning("scan %d: %s", seq, st.status_reason)
             st.status = "degraded"
+            self._alias_spread = _offsets_second_moment(ys, hs, p_now)
             return
+        self._alias_spread = None
         self.ekf.cov = self.ekf.cov + np.outer(offset, offset)
         self.ekf.actual_cov = self.ekf.actual_cov + np.outer(offset, offset)
         st.lost_events += 1
@@ -636,13 +655,16 @@ class PoseEstimator:
         """3x3 covariance (map frame) of what the chain of key scans does not hold: the pose held past the
         extrapolation limit while the base may still move (odometry late; the motion extrapolated up to the
         limit is covered by the chain's odometry noise since the key scan) and, while the track is lost, the
-        filter's covariance (widened by the matches' disagreement; the key scans came from the poses it lost)."""
+        filter's covariance (widened by the matches' disagreement; the key scans came from the poses it lost)
+        or, while its matches are judged ambiguous, the spread of their offsets from the prediction."""
         _, v, w, held = self._extrapolated
         cov = np.zeros((3, 3))
         if held > 0:
             cov = rotated(self.ekf.pose, self.config.motion.extrapolation_covariance(v, 0.0, w, held))
         if self.stats.status == "lost":
             cov = cov + self.scan_relative_covariance()
+        elif self._alias_spread is not None:
+            cov = cov + self._alias_spread
         return cov
 
     def scan_relative_covariance(self) -> np.ndarray:

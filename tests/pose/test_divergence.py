@@ -139,6 +139,23 @@ def test_aliased_matches_are_ambiguous_and_the_estimate_follows_odometry(shifts)
     assert all(e.status != "lost" for e, _ in out)
     assert out[-1][0].status == "degraded" and est.stats.status_reason.startswith("ambiguous")
     assert np.max([np.hypot(*(e.pose[:2] - t[:2])) for e, t in out]) < 0.02
+    # the reported covariance covers the aliases' offsets (0.4-0.5 m along x), in case one of them is right
+    assert np.sqrt(out[-1][0].covariance[0, 0]) > 0.35
+
+
+def test_the_alias_widening_ends_when_a_match_is_fused_again():
+    est = PoseEstimator(EstimatorConfig(lost_after=3))
+    aliased = []
+
+    def shifts(k):
+        aliased.append(k)
+        return (0.4, 0.0, 0.0) if len(aliased) <= 6 else (0.0, 0.0, 0.0)
+
+    _aliased_matcher(est, shifts)
+    out = _drive_in_box(est, 80)
+    assert est.stats.ambiguous_events == 1
+    widest = max(np.sqrt(e.covariance[0, 0]) for e, _ in out)
+    assert widest > 0.3 and out[-1][0].status == "ok" and np.sqrt(out[-1][0].covariance[0, 0]) < 0.05
 
 
 def test_a_consistent_heading_offset_is_relocalised_on():
