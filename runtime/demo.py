@@ -71,6 +71,7 @@ class DemoResult:
     closures: int = 0  # loop closures the pose graph had accepted by then
     graph_lag: int = 0  # key scans the pose graph had not yet taken in when that estimate was corrected
     graph: GraphEvaluation | None = None  # with loop closure: the final optimised key scans and closures scored
+    corrected_evaluation: MapEvaluation | None = None  # with loop closure: the maps rebuilt at the final graph
     route_done: bool = False
     latency: list[float] = field(default_factory=list)
     stages: dict[str, list[float]] = field(default_factory=dict)
@@ -218,16 +219,18 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
                 bar.close()
     finally:
         report = await devices.stop()
-    evaluation = None
+    evaluation = corrected_evaluation = None
+    graph = getattr(rt.processor, "graph", None)
     try:
         seen = np.load(seen_path) if seen_path.exists() else None
-        evaluation = evaluate_map(rt.processor, world, seen=seen)
+        evaluation = evaluate_map(rt.processor.mapper, world, seen=seen)
+        if graph is not None and graph.snapshot().glass is not None:
+            corrected_evaluation = evaluate_map(graph.snapshot().glass, world, seen=seen)
     except Exception as exc:  # the map is still written; say why there is no score
         log.error("evaluation against the blueprint failed: %s", exc)
     est = rt.pose.pose if rt.pose is not None else None
     est_cov = rt.pose.covariance if rt.pose is not None else None
     corrected = rt.latest.corrected_pose if rt.latest is not None else None
-    graph = getattr(rt.processor, "graph", None)
     trajectory = graph_eval = None
     true_final = np.full(3, np.nan)
     if truth_path.exists() and estimates:
@@ -244,6 +247,7 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
                       estimated_final_cov=est_cov, corrected_final=corrected,
                       closures=graph.closures if graph is not None else 0, graph=graph_eval,
+                      corrected_evaluation=corrected_evaluation,
                       graph_lag=getattr(rt.processor, "graph_lag", 0),
                       true_pose_at_stop=np.asarray(report.get("true_pose", [np.nan] * 3)), trajectory=trajectory,
                       route_done=driver.follower.done,  # type: ignore[attr-defined]
@@ -308,4 +312,7 @@ def format_result(res: DemoResult) -> str:
         lines.append(res.evaluation.describe())
     else:
         lines.append("classification error: not available (see the log)")
+    if res.corrected_evaluation is not None:
+        lines.append("corrected maps (key scans at the final pose graph's poses): "
+                     + res.corrected_evaluation.describe())
     return "\n".join(lines)

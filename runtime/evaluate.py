@@ -84,24 +84,25 @@ def best_shift(labels: np.ndarray, blueprint_labels: np.ndarray, max_shift: int)
     return best
 
 
-def evaluate_map(processor, world, *, seen: np.ndarray | None = None, eval_radius: float = 1.5,
+def evaluate_map(maps, world, *, seen: np.ndarray | None = None, eval_radius: float = 1.5,
                  tolerance: int = 0, max_shift: int = 4) -> MapEvaluation:
-    """Score ``processor.mapper`` (a :class:`runtime.processor.MappingProcessor`) against ``world``.
+    """Score ``maps`` (anything with ``grid``, ``occupancy`` and ``glass``: the runtime's
+    :class:`~glassmap.mapping.GlassMapper`, or a :class:`~glassmap.mapping.MapCopy` such as the pose graph's
+    corrected maps) against ``world``.
 
     seen: (H, W) bool on ``Blueprint.from_world(world, resolution)``'s grid, or None (see module docstring).
     max_shift: cells searched each way for the aligned score (0 = no aligned score)."""
     from glassmap.eval.trial import evaluation_mask
     from glassmap.sim.blueprint import Blueprint
 
-    mapper = processor.mapper
-    g = mapper.grid
+    g = maps.grid
     bp = Blueprint.from_world(world, resolution=g.resolution)
-    labels = mapper.glass.labels(mapper.occupancy)
+    labels = maps.glass.labels(maps.occupancy)
     raw = _on_grid(labels, g.origin, bp.origin, bp.labels.shape, g.resolution, np.int8(-2))
     lab = _within(raw, tolerance)
     seen_from = "simulator"
     if seen is None or seen.shape != bp.labels.shape:
-        known = _on_grid(~mapper.occupancy.unknown(), g.origin, bp.origin, bp.labels.shape, g.resolution, False)
+        known = _on_grid(~maps.occupancy.unknown(), g.origin, bp.origin, bp.labels.shape, g.resolution, False)
         seen = ndimage.binary_dilation(known, iterations=2)
         seen_from = "map"
     mask = evaluation_mask(bp.labels, seen, bp.resolution, eval_radius)

@@ -235,12 +235,10 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
 
         seen_path = seen_cells_for(path, seen)
         mask = np.load(seen_path) if seen_path is not None else None
-        ev = evaluate_map(proc, load_world(world), seen=mask)
+        ev = evaluate_map(proc.mapper, load_world(world), seen=mask)
         res.error = ev.error
         if res.pose_graph is not None and res.pose_graph.glass is not None:
-            from types import SimpleNamespace
-
-            res.corrected = evaluate_map(SimpleNamespace(mapper=res.pose_graph.glass), load_world(world), seen=mask)
+            res.corrected = evaluate_map(res.pose_graph.glass, load_world(world), seen=mask)
         res.seen_from = str(seen_path) if ev.seen_from == "simulator" else "map"
     res._processor = proc  # type: ignore[attr-defined]  # for callers in this process (tests)
     return res

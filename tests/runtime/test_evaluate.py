@@ -36,14 +36,14 @@ def world():
 
 def test_a_map_equal_to_the_blueprint_scores_zero(world):
     proc, bp = perfect_mapper(world)
-    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    ev = evaluate_map(proc.mapper, world, seen=np.ones(bp.labels.shape, bool))
     assert ev.error == 0.0 and ev.glass_recall == 1.0 and ev.false_glass_rate == 0.0
     assert ev.n_glass > 100 and ev.n_wall > 100 and ev.seen_from == "simulator"
 
 
 def test_glass_called_wall_counts_every_glass_cell(world):
     proc, bp = perfect_mapper(world, glass_value=-3.0)
-    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    ev = evaluate_map(proc.mapper, world, seen=np.ones(bp.labels.shape, bool))
     assert ev.error == pytest.approx(ev.n_glass / ev.n_cells)
     assert ev.glass_recall == 0.0
 
@@ -51,9 +51,9 @@ def test_glass_called_wall_counts_every_glass_cell(world):
 def test_only_seen_cells_count(world):
     proc, bp = perfect_mapper(world, glass_value=0.0)  # undecided everywhere on glass
     seen = np.zeros(bp.labels.shape, bool)
-    assert evaluate_map(proc, world, seen=seen).n_cells == 0
+    assert evaluate_map(proc.mapper, world, seen=seen).n_cells == 0
     seen[:, : bp.labels.shape[1] // 2] = True
-    ev = evaluate_map(proc, world, seen=seen)
+    ev = evaluate_map(proc.mapper, world, seen=seen)
     assert 0 < ev.n_cells and ev.error == pytest.approx(ev.n_glass / ev.n_cells) and ev.unregistered > 0
 
 
@@ -61,12 +61,12 @@ def test_a_map_shifted_off_the_blueprint_is_realigned(world):
     proc, bp = perfect_mapper(world)
     g = proc.mapper.grid
     g.origin = g.origin + np.array([0.10, -0.05])  # the map sits 2 cells right, 1 cell down of the truth
-    ev = evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool))
+    ev = evaluate_map(proc.mapper, world, seen=np.ones(bp.labels.shape, bool))
     assert ev.error > 0.5  # the strict per-cell rule counts the shifted walls as unregistered
     assert ev.shift_cells == (-2, 1)
     assert ev.aligned is not None and ev.aligned.error == 0.0
     assert "after aligning" in ev.describe()
-    assert evaluate_map(proc, world, seen=np.ones(bp.labels.shape, bool), max_shift=0).aligned is None
+    assert evaluate_map(proc.mapper, world, seen=np.ones(bp.labels.shape, bool), max_shift=0).aligned is None
 
 
 def test_trajectory_is_scored_at_the_same_scans():

@@ -14,6 +14,6 @@ path, world = sys.argv[1], sys.argv[2]
 seen = np.load(os.path.join(os.path.dirname(path), "seen_cells.npy"))
 for s in ("anchor", "map"):
     res = replay_file(path, with_settings(recorded_config(path), registration_sigma=s), progress=False)
-    ev = evaluate_map(res._processor, load_world(world), seen=seen)
+    ev = evaluate_map(res._processor.mapper, load_world(world), seen=seen)
     print(f"sigma {s}: scans {res.scans}, error {100 * ev.error:.2f} %, glass recall {100 * ev.glass_recall:.2f} %, "
           f"false glass {100 * ev.false_glass_rate:.2f} %, unregistered {100 * ev.unregistered:.2f} %")
