@@ -11,7 +11,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -56,6 +56,12 @@ class MapperConfig:
         usually been cleared (to l_min) by earlier pass-through beams; a pass-through is no evidence against
         glass, so the glass return restores the cell. Applied to the shared grid also when
         ``update_occupancy=False``.
+    visibility: robust registration hands a beam's evidence to a window neighbour in proportion to the chance
+        that the neighbour could have returned the beam: 1 for a cell that is not glass, and for glass the
+        chance that a pane returns a beam at the beam's incidence angle, exp(-theta^2 / (2 w^2)) with w =
+        ``glass_return_width`` (rad); the neighbour's current p(glass) weighs the two. (A wall is seen at
+        every incidence, a pane only near normal incidence: without it, a wall's oblique beams erode the
+        end of a pane next to it.) The centre cell c_hat_j always gets p(g_j).
     """
 
     angle_method: AngleMethod = "split-merge"
@@ -72,6 +78,8 @@ class MapperConfig:
     glass_hits_occupy: bool = True
     glass_hit_threshold: float = 0.5
     layer: str = "glass"
+    visibility: bool = False
+    glass_return_width: float = math.radians(10.0)
 
     def __post_init__(self) -> None:
         if self.registration not in ("direct", "robust"):
@@ -197,6 +205,9 @@ class GlassMapper:
                                           cfg.search_radius)
         ev = window_evidence(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
                              method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref, p_clip=cfg.glass.p_clip)
+        if cfg.visibility:
+            theta = beams.incidence[use]
+            ev = replace(ev, returns=np.exp(-(theta * theta) / (2.0 * cfg.glass_return_width ** 2)))
         self.glass.update_evidence(ev, cfg.aggregation)
         return n_use
 

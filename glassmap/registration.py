@@ -115,6 +115,7 @@ class WindowEvidence:
     spread: np.ndarray
     offsets: np.ndarray
     drop_zero: bool
+    returns: np.ndarray | None = None  # (n,) chance that glass returns each beam; None: no visibility scaling
 
 
 def window_evidence(p_glass: np.ndarray, end_xy: np.ndarray, centre_cells: np.ndarray, sigma: np.ndarray | float,
@@ -198,8 +199,15 @@ def update_with_evidence(layer: np.ndarray, ev: WindowEvidence, aggregation: Agg
     if not layer.flags.c_contiguous:
         raise ValueError("update_with_evidence needs a C-contiguous layer (it updates it through a flat view)")
     h, w = layer.shape
+    if ev.returns is None or ev.offsets.shape[0] == 1:
+        returns, centre = _NO_RETURNS, -1
+    else:
+        returns, centre = np.ascontiguousarray(ev.returns, dtype=np.float64), ev.offsets.shape[0] // 2
     return update_windows(layer.reshape(-1), ev.centre_cells, ev.log_odds, ev.spread, ev.offsets, w, h,
-                          ev.drop_zero, aggregation == "scan", float(l_min), float(l_max))
+                          ev.drop_zero, aggregation == "scan", float(l_min), float(l_max), returns, centre)
+
+
+_NO_RETURNS = np.zeros(0)
 
 
 def aggregate(obs: Observations, aggregation: Aggregation = "scan") -> tuple[np.ndarray, np.ndarray]:

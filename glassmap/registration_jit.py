@@ -129,13 +129,19 @@ def decayed(p: np.ndarray, w: np.ndarray, dist: np.ndarray, sigma: np.ndarray, p
 
 @_jit
 def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread: np.ndarray, offs: np.ndarray,
-                   w: int, h: int, drop_zero: bool, mean: bool, l_min: float, l_max: float) -> int:
+                   w: int, h: int, drop_zero: bool, mean: bool, l_min: float, l_max: float, returns: np.ndarray,
+                   centre: int) -> int:
     """:func:`window_observations`, then per cell their sum (``mean``: divided by their number) added to the
     flat float32 log-odds ``layer`` clamped to [l_min, l_max], in one pass without sorting: observations of
     exactly 0 are left out only if ``drop_zero``. A cell's observations are added in observation order (beam
     by beam, window cells in ``offs`` order) from 0.0, as :func:`sum_runs` does; the update is that of
     ``layer[c] = clip(layer[c] + delta, l_min, l_max)`` in float64 stored as float32. Returns the number of
-    cells updated."""
+    cells updated.
+
+    ``centre`` >= 0 (the index of offset (0, 0) in ``offs``): the other window cells' evidence is scaled
+    towards 0.5 by their visibility, (1 - q) + q * returns[j] with q the cell's p(glass) before this scan and
+    ``returns[j]`` (n,) the chance that glass returns beam j (see :func:`glassmap.registration.window_evidence`).
+    """
     n, q = cells.shape[0], offs.shape[0]
     bits = 1
     while (1 << bits) < 2 * n * q:
@@ -153,9 +159,15 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
         for i in range(q):
             x, y = cx + offs[i, 0], cy + offs[i, 1]
             v = lo[j, spread[i]]
-            if x < 0 or x >= w or y < 0 or y >= h or (drop_zero and v == 0.0):
+            if x < 0 or x >= w or y < 0 or y >= h:
                 continue
             c = y * w + x
+            if centre >= 0 and i != centre and v != 0.0:
+                q_glass = 1.0 / (1.0 + math.exp(-np.float64(layer[c])))
+                p = ((1.0 / (1.0 + math.exp(-v))) - 0.5) * (1.0 - q_glass + q_glass * returns[j]) + 0.5
+                v = math.log(p) - math.log1p(-p)
+            if drop_zero and v == 0.0:
+                continue
             b = np.int64((np.uint64(c) * fib) >> shift)
             while True:
                 s = slot[b]

@@ -42,6 +42,8 @@ METHODS: dict[str, dict] = {
     "robust3-protect-glass": dict(registration="robust", window=3, protect="glass"),
     "robust3-no-protect": dict(registration="robust", window=3, protect="none"),
     "robust3-plain": dict(registration="robust", window=3, protect="none", glass_hits_occupy=False),
+    "robust3-vis": dict(registration="robust", window=3, visibility=True),
+    "robust5-vis": dict(registration="robust", window=5, visibility=True),
 }
 """Method name -> MapperConfig fields. ``-beam``: per-beam update (the paper); default per-scan mean.
 ``-endpoint``: eq. 6 distance from the beam end point; default from c_hat_j. The default occupancy update
