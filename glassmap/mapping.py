@@ -94,6 +94,8 @@ class MapperConfig:
             raise ValueError(f"protect must be 'hits', 'glass' or 'none', got {self.protect!r}")
         if self.search_radius < 0:
             raise ValueError(f"search_radius must be >= 0 cells, got {self.search_radius}")
+        if not self.glass_return_width > 0:
+            raise ValueError(f"glass_return_width must be > 0 rad, got {self.glass_return_width}")
 
 
 @dataclass

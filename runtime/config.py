@@ -89,6 +89,9 @@ class MappingConfig:
                                       "built so far, or relative to the map frame's 'anchor' (the reported one)")
     aggregation: str = setting("scan", "evidence aggregation per cell: scan | beam")
     decay_reference: str = setting("cell", "eq. 6 decay from the nearest occupied 'cell' or the beam 'endpoint'")
+    visibility: bool = setting(True, "robust registration hands a beam's evidence to a window neighbour only as far "
+                               "as the neighbour could have returned the beam (a pane the map believes in returns "
+                               "only near normal incidence); false: eq. 6 as the paper prints it")
     occupancy_update: str = setting("mapper", "who integrates each scan into the occupancy grid at the corrected "
                                          "pose: 'mapper' (glass-aware: cells hit by glass-classified beams "
                                          "are kept occupied and not cleared) or 'estimator' (plain)")

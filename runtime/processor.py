@@ -55,6 +55,7 @@ class MappingProcessor:
         self.estimator = PoseEstimator(ecfg)
         mcfg = mapper_config or MapperConfig(registration=mapping.registration, window=mapping.window,
                                              decay_ref=mapping.decay_reference, aggregation=mapping.aggregation,
+                                             visibility=mapping.visibility,
                                              weights=mapping.classifier_weights or None)
         self.mapper = GlassMapper(occupancy=self.estimator.occupancy, config=mcfg)
         self.mapper_integrates = mapping.occupancy_update == "mapper"

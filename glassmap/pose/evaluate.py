@@ -237,17 +237,17 @@ def _odometry_in_map(run, start: np.ndarray) -> np.ndarray:
 
 
 def _online_glass_hook(est: PoseEstimator, classifier, then):
-    """An on_scan hook running the runtime's glass path (classify, register with the runtime's default
-    registration sigma, the pose's uncertainty relative to the map built so far; update the glass map) on
-    the estimator's grid at the estimated pose, then ``then``."""
-    from glassmap.mapping import GlassMapper
+    """An on_scan hook running the runtime's glass path (classify; register as the runtime does by default,
+    robust 3x3 with visibility, with its registration sigma, the pose's uncertainty relative to the map built
+    so far; update the glass map) on the estimator's grid at the estimated pose, then ``then``."""
+    from glassmap.mapping import GlassMapper, MapperConfig
     from glassmap.pose.corrected import online_sigma
 
     if classifier is None:
         from glassmap.classifier import GlassClassifier
 
         classifier = GlassClassifier.load_default()
-    mapper = GlassMapper(est.occupancy, classifier=classifier)
+    mapper = GlassMapper(est.occupancy, MapperConfig(visibility=True), classifier=classifier)
     est.protect_mask_fn = mapper.protect_mask
 
     def hook(i, scan, e, estimator):

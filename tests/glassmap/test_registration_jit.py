@@ -133,3 +133,35 @@ def test_mapper_on_simulated_office_scans_equals_the_numpy_path(config):
     assert np.any(new["glass"] > 0) and np.any(new["glass"] < 0)
     if config.protect == "hits":
         assert new["glass_hits"].any()
+
+
+def _one_wall_beam(returns, neighbour_log_odds):
+    """A wall beam (p = 0.02) registered on cell (5, 5) with sigma 5 cm (a neighbour's decay weight 0.61), the
+    cell to its right holding ``neighbour_log_odds`` before the update; returns the map after it."""
+    from dataclasses import replace
+
+    gm = GlassMap(MapGrid(0.05, (0.0, 0.0), (10, 10)), GlassParams())
+    gm.log_odds[5, 6] = neighbour_log_odds
+    g = gm.grid
+    ev = window_evidence(np.array([0.02]), np.array([[0.275, 0.275]]), np.array([[5, 5]]), np.array([0.05]),
+                         g.origin, g.resolution, "robust", 3, "cell", 1e-3)
+    gm.update_evidence(ev if returns is None else replace(ev, returns=np.array([returns])), "beam")
+    return gm.log_odds
+
+
+def test_visibility_spares_a_believed_pane_from_an_oblique_wall_beam():
+    """A wall seen at 40 deg next to a cell the map believes is glass (p 0.88): a pane would not have returned
+    that beam, so the neighbour keeps most of its belief; a neighbour believed wall, the centre cell and a beam
+    at normal incidence (a pane would return it) are updated as by eq. 6."""
+    oblique = math.exp(-math.radians(40.0) ** 2 / (2 * math.radians(10.0) ** 2))
+    plain, vis = _one_wall_beam(None, 2.0), _one_wall_beam(oblique, 2.0)
+    q = 1 / (1 + math.exp(-2.0))
+    w = math.exp(-0.5)  # a side neighbour 5 cm away at sigma 5 cm
+    p_plain = (0.02 - 0.5) * w + 0.5
+    p_vis = (0.02 - 0.5) * w * ((1 - q) + q * oblique) + 0.5
+    assert plain[5, 6] == pytest.approx(2.0 + math.log(p_plain / (1 - p_plain)), abs=1e-5)  # about 2 - 1.34
+    assert vis[5, 6] == pytest.approx(2.0 + math.log(p_vis / (1 - p_vis)), abs=1e-5)  # about 2 - 0.14
+    assert vis[5, 5] == plain[5, 5] < -3.0  # the centre gets p(g_j) either way
+    wall_plain, wall_vis = _one_wall_beam(None, -2.0), _one_wall_beam(oblique, -2.0)
+    assert wall_vis[5, 6] - -2.0 < 0.8 * (wall_plain[5, 6] - -2.0) < 0.0  # most of eq. 6's evidence
+    np.testing.assert_array_equal(_one_wall_beam(1.0, 2.0), plain)  # normal incidence: a pane returns it
