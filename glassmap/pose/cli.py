@@ -100,9 +100,11 @@ def register(subparsers) -> None:
     add_out(x, "out/pose")
     x.set_defaults(func=_experiment)
 
-    g = sub.add_parser("margins", help="robust3's margins over direct per world and over worlds, from experiment CSVs",
+    g = sub.add_parser("margins", help="the robust methods' margins over direct per world and over worlds, from "
+                       "experiment CSVs",
                        description="Read the CSVs of `glassmap pose experiment` (one or more worlds) and print, per "
-                       "world and kind of map, robust3's (and robust3~<sigma>'s) gain over direct in mean, worst "
+                       "world and kind of map, each robust method's (robust3, robust3-vis, robust3~<sigma>, ...) "
+                       "gain over direct in mean, worst "
                        "and std of the error over trials, trial by trial (trials where robust3's error is lower, "
                        "and the mean paired difference direct - robust3 in points of error with its standard "
                        "error), then over the worlds the mean gain and the worst world's.")
@@ -269,9 +271,9 @@ def _experiment(args: argparse.Namespace) -> int:
              f"{np.mean(nees):.2f}, median registration sigma {100 * np.median(sig):.1f} cm")
     from glassmap.pose.experiment import margins
 
-    compared = [margins(summary, methods[0], "robust3")]
+    compared = [margins(summary, methods[0], m) for m in methods[1:] if m.startswith("robust")]
     compared += [margins(summary, methods[0], f"robust3~{src}", ("",)) for src in sigmas[1:]]
-    for m in [m for ms in compared for m in ms] if "robust3" in methods and methods[0] != "robust3" else []:
+    for m in [m for ms in compared for m in ms] if not methods[0].startswith("robust") else []:
         text += (f"\n{m['other']} vs {m['base']} ({m['maps']} maps): gain in mean {100 * m['mean_gain']:+.1f} %, worst "
                  f"{100 * m['worst_gain']:+.1f} %, std {100 * m['std_gain']:+.1f} % -> "
                  f"{'beats it in all three' if m['beats'] else 'does not beat it in all three'}")
@@ -298,7 +300,7 @@ def _margins(args: argparse.Namespace) -> int:
     for path in args.csv:
         with open(path, newline="") as f:
             rows.extend(csv.DictReader(f))
-    others = ["robust3"] + sorted({r["method"] for r in rows if r["method"].startswith("robust3~")})
+    others = sorted({r["method"] for r in rows if r["method"].startswith("robust") and "@" not in r["method"]})
     per_world, overall = world_margins(rows, others=tuple(others))
     print(f"{'world':28s} {'method':15s} {'maps':8s} {'mean':>7s} {'worst':>7s} {'std':>7s}  beats  "
           f"{'trials won':>10s}  {'paired diff +- se (points)':>26s}")
