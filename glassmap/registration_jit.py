@@ -153,21 +153,21 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
     key = np.empty(n * q, np.int64)
     total = np.empty(n * q)
     count = np.empty(n * q, np.int64)
+    vis = centre >= 0
+    q_glass = np.empty(n * q if vis else 0)  # per entry: the cell's p(glass) before this scan
+    half = np.empty(lo.shape[1])  # per beam: eq. 6's decayed p - 0.5 at each window distance
     u = 0
     for j in range(n):
         cx, cy = cells[j, 0], cells[j, 1]
+        if vis:
+            for k in range(lo.shape[1]):
+                half[k] = 1.0 / (1.0 + math.exp(-lo[j, k])) - 0.5
         for i in range(q):
             x, y = cx + offs[i, 0], cy + offs[i, 1]
             v = lo[j, spread[i]]
-            if x < 0 or x >= w or y < 0 or y >= h:
+            if x < 0 or x >= w or y < 0 or y >= h or (drop_zero and v == 0.0):
                 continue
             c = y * w + x
-            if centre >= 0 and i != centre and v != 0.0:
-                q_glass = 1.0 / (1.0 + math.exp(-np.float64(layer[c])))
-                p = ((1.0 / (1.0 + math.exp(-v))) - 0.5) * (1.0 - q_glass + q_glass * returns[j]) + 0.5
-                v = math.log(p) - math.log1p(-p)
-            if drop_zero and v == 0.0:
-                continue
             b = np.int64((np.uint64(c) * fib) >> shift)
             while True:
                 s = slot[b]
@@ -177,11 +177,16 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
                     key[s] = c
                     total[s] = 0.0
                     count[s] = 0
+                    if vis:
+                        q_glass[s] = 1.0 / (1.0 + math.exp(-np.float64(layer[c])))
                     u += 1
                     break
                 if key[s] == c:
                     break
                 b = (b + 1) & mask
+            if vis and i != centre:
+                p = half[spread[i]] * (1.0 - q_glass[s] + q_glass[s] * returns[j]) + 0.5
+                v = math.log(p / (1.0 - p))
             total[s] += v
             count[s] += 1
     for s in range(u):
