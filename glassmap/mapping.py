@@ -207,9 +207,10 @@ class GlassMapper:
                                           cfg.search_radius)
         ev = window_evidence(beams.p_glass[use], ends, cells, sigma[use], g.origin, g.resolution,
                              method=cfg.registration, k=cfg.window, decay_ref=cfg.decay_ref, p_clip=cfg.glass.p_clip)
-        if cfg.visibility:
+        if cfg.visibility:  # a beam without an incidence angle is registered as by eq. 6
             theta = beams.incidence[use]
-            ev = replace(ev, returns=np.exp(-(theta * theta) / (2.0 * cfg.glass_return_width ** 2)))
+            returns = np.exp(-(theta * theta) / (2.0 * cfg.glass_return_width ** 2))
+            ev = replace(ev, returns=np.where(np.isfinite(returns), returns, 1.0))
         self.glass.update_evidence(ev, cfg.aggregation)
         return n_use
 

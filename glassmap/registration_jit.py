@@ -140,7 +140,7 @@ def update_windows(layer: np.ndarray, cells: np.ndarray, lo: np.ndarray, spread:
 
     ``centre`` >= 0 (the index of offset (0, 0) in ``offs``): the other window cells' evidence is scaled
     towards 0.5 by their visibility, (1 - q) + q * returns[j] with q the cell's p(glass) before this scan and
-    ``returns[j]`` (n,) the chance that glass returns beam j (see :func:`glassmap.registration.window_evidence`).
+    ``returns[j]`` (n,) the chance that glass returns beam j (see ``glassmap.mapping.MapperConfig.visibility``).
     """
     n, q = cells.shape[0], offs.shape[0]
     bits = 1

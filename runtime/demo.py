@@ -224,8 +224,9 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
     try:
         seen = np.load(seen_path) if seen_path.exists() else None
         evaluation = evaluate_map(rt.processor.mapper, world, seen=seen)
-        if graph is not None and graph.snapshot().glass is not None:
-            corrected_evaluation = evaluate_map(graph.snapshot().glass, world, seen=seen)
+        final_maps = graph.snapshot().glass if graph is not None else None
+        if final_maps is not None:
+            corrected_evaluation = evaluate_map(final_maps, world, seen=seen)
     except Exception as exc:  # the map is still written; say why there is no score
         log.error("evaluation against the blueprint failed: %s", exc)
     est = rt.pose.pose if rt.pose is not None else None

@@ -124,7 +124,8 @@ class MappingProcessor:
         corrected = None
         if self.graph is not None:
             if key and self.estimator.last_key_scan is not None:
-                self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass))
+                self.graph.submit(replace(self.estimator.last_key_scan, scan=scan, p_glass=beams.p_glass,
+                                              incidence=beams.incidence))
             from glassmap.pose.backend import corrected_estimate  # glassmap.pose is imported lazily here
 
             correction, self.graph_lag = self.graph.latest_correction()

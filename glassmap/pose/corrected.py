@@ -94,7 +94,8 @@ class MapRebuild:
             scan = k.scan
             gm.integrate(scan, lp)
             use = np.isfinite(k.p_glass)
-            beams = BeamGlass(np.asarray(k.p_glass, dtype=np.float64), np.full(k.p_glass.shape, np.nan))
+            inc = np.full(k.p_glass.shape, np.nan) if k.incidence is None else k.incidence
+            beams = BeamGlass(np.asarray(k.p_glass, dtype=np.float64), np.asarray(inc, dtype=np.float64))
             if gm.config.glass_hits_occupy or gm.config.protect == "hits":
                 gm.mark_glass_hits(beams, use, scan, lp)
             gm.register(beams, use, scan, lp, relative_sigma(k, scan.ranges))

@@ -142,7 +142,8 @@ def run_online_trial(cfg: OnlineTrialConfig, seed: int, classifier=None, maps_ou
         is_key = est.stats.last_keyframe and est.last_key_scan is not None
         if backend is not None and is_key:
             beams, use = first.classify(scan)
-            backend.add(replace(est.last_key_scan, scan=scan, p_glass=np.where(use, beams.p_glass, np.nan)))
+            backend.add(replace(est.last_key_scan, scan=scan, p_glass=np.where(use, beams.p_glass, np.nan),
+                                incidence=beams.incidence))
             key_index.append(i)
         now = {"keys": is_key, "every": i % cfg.glass_every == 0}
         if not any(now.values()):

@@ -18,9 +18,9 @@ class KeyScan:
     odom (3,): the wheel-odometry pose (odom frame) at ``stamp``; fused_dims: directions of the scan match
     fused into the pose (0: placed by odometry alone); written: the scan was integrated into the map;
     angles (n,) rad, ranges (n,) m: the scan as matched (laser frame, after any de-skew); range_max (m);
-    mount (3,): laser pose in the base frame. scan / p_glass: the raw scan and its p(glass) per beam (NaN:
-    not classified), attached by the runtime's glass path so the glass map can be rebuilt at corrected
-    poses (None: occupancy only)."""
+    mount (3,): laser pose in the base frame. scan / p_glass / incidence: the raw scan, its p(glass) per beam
+    (NaN: not classified) and incidence angle per beam (rad, NaN: none), attached by the runtime's glass path
+    so the glass map can be rebuilt at corrected poses (None: occupancy only)."""
 
     seq: int
     stamp: float
@@ -35,3 +35,4 @@ class KeyScan:
     mount: np.ndarray
     scan: Scan | None = None
     p_glass: np.ndarray | None = None
+    incidence: np.ndarray | None = None

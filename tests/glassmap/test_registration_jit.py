@@ -165,3 +165,28 @@ def test_visibility_spares_a_believed_pane_from_an_oblique_wall_beam():
     wall_plain, wall_vis = _one_wall_beam(None, -2.0), _one_wall_beam(oblique, -2.0)
     assert wall_vis[5, 6] - -2.0 < 0.8 * (wall_plain[5, 6] - -2.0) < 0.0  # most of eq. 6's evidence
     np.testing.assert_array_equal(_one_wall_beam(1.0, 2.0), plain)  # normal incidence: a pane returns it
+
+
+def test_visibility_without_incidence_angles_registers_as_eq_6():
+    """Beams without an incidence angle (e.g. key scans stored without it) get eq. 6's evidence, never NaN."""
+    from glassmap.classifier import GlassClassifier
+    from glassmap.mapping import BeamGlass
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+
+    world = load_world("office")
+    wp = world.route()
+    pose = np.array([*wp[0], math.atan2(*(wp[1] - wp[0])[::-1])])
+    scan = simulate_scan(world, pose, np.random.default_rng(1)).to_scan()
+    maps = []
+    for cfg in (MapperConfig(visibility=True), MapperConfig()):
+        m = GlassMapper(OccupancyGrid(MapGrid(0.05, (-2.0, -2.0), (80, 80))), cfg,
+                        classifier=GlassClassifier.load_default())
+        m.glass.log_odds[...] = 1.0  # every cell believed glass: visibility would matter everywhere
+        beams, use = m.classify(scan)
+        m.integrate(scan, pose)
+        no_angle = BeamGlass(beams.p_glass, np.full_like(beams.incidence, np.nan))
+        assert m.register(no_angle, use, scan, pose, np.full(scan.ranges.shape, 0.03)) > 0
+        maps.append(m.glass.log_odds)
+    assert np.all(np.isfinite(maps[0]))
+    np.testing.assert_array_equal(maps[0], maps[1])

@@ -86,8 +86,9 @@ def test_demo_part_reports_the_final_error_in_sigma_with_the_pose_graph(tmp_path
     assert 0.0 <= row["final_sigma"] < 3.0 and row["silent_divergence"] == 0.0 and not row["stopped_lost"]
     # no closure: the pose is the front end's (its sigma is the graph's, from the chain of key scans)
     assert row["final_error"] == pytest.approx(row["final_pose_error"], abs=1e-9)
-    # the maps the pose graph rebuilt at its final poses are scored too (issue 17)
-    assert 0.0 <= row["corrected_error"] <= 1.0 and 0.0 <= row["corrected_glass_recall"] <= 1.0
+    # the maps the pose graph rebuilt at its final poses are scored too (issue 17): without a closure they are
+    # the online maps rebuilt from the same key scans at the same poses
+    assert row["corrected_error"] == pytest.approx(row["error"], abs=0.02)
 
 
 def test_pose_part_with_the_pose_graph_reports_the_corrected_estimates_consistency(tmp_path):
