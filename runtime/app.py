@@ -82,6 +82,8 @@ class RunSummary:
     pose_gated: int = 0  # scan matches rejected by the estimator's gate (neither fused nor mapped)
     pose_lost: int = 0  # times the track was lost
     pose_ambiguous: int = 0  # streaks of rejected matches judged aliases (followed odometry)
+    lost_holds: int = 0  # times a driven robot was held at rest on a lost track (base.lost_hold)
+    lost_held_s: float = 0.0  # time (s, the robot's) it was held before the track recovered
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -122,6 +124,8 @@ class Runtime:
         self._rx_time: dict[str, float] = {}
         self.map_worker = MapWorker()
         self._pose_event = asyncio.Event()
+        self._lost_since: float | None = None  # scan stamp (s) at which the robot was held on a lost track
+        self._hold_task: asyncio.Task | None = None
 
     # -- helpers for drivers (route following, teleop) ---------------------------------------------------
     @property
@@ -136,9 +140,12 @@ class Runtime:
         return self.pose
 
     async def command_velocity(self, v: float, omega: float) -> None:
-        """Send a velocity command (m/s, rad/s) to the base and record it on /cmd_vel."""
+        """Send a velocity command (m/s, rad/s) to the base and record it on /cmd_vel; zero while the robot is
+        held on a lost pose track."""
         if self.base is None:
             raise RuntimeFailure("no base connected: cannot drive")
+        if self._lost_since is not None:
+            v, omega = 0.0, 0.0
         await self.base.set_velocity(v, omega)
         if self.sink is not None:
             self.sink.cmd_vel(time.monotonic(), v, omega)
@@ -306,16 +313,47 @@ class Runtime:
 
     def _on_result(self, r: ScanResult) -> None:
         self.latest = r
-        if r.estimate.status == "lost" and self.driver is not None and self.stop is not None:
-            # never drive on an estimate that no longer agrees with the map: stop the robot and say why
-            st = self.processor.estimator.stats
-            self.stop.set(f"pose estimate lost at t={r.scan.stamp:.1f} s: {st.status_reason}")
+        if self.driver is not None and self.stop is not None:
+            self._hold_while_lost(r)
         self.latency.add(r)
         if self.sink is not None:
             self.sink.result(r)
         if self.on_result_cb is not None:
             self.on_result_cb(r)
         self._pose_event.set()
+
+    def _hold_while_lost(self, r: ScanResult) -> None:
+        """Never drive on an estimate that no longer agrees with the map: while the track is lost the robot is
+        held at rest (every command becomes zero) for up to ``base.lost_hold`` s of the robot's time, for the
+        estimator to relocalise against the map; then driving goes on, or, if it has not, the run stops and
+        says why."""
+        stamp, lost = float(r.scan.stamp), r.estimate.status == "lost"
+        scale = self.pioneer_options.get("time_scale", 1.0)  # robot seconds per host second (stamps: host s)
+        hold = self.config.base.lost_hold / scale
+        if lost and self._lost_since is None:
+            self._lost_since = stamp
+            self.summary.lost_holds += 1
+            if hold > 0:
+                log.warning("pose track lost at t=%.1f s: holding the robot at rest for up to %g s while the "
+                            "estimate relocalises against the map", stamp, self.config.base.lost_hold)
+            if self.base is not None and (self._hold_task is None or self._hold_task.done()):
+                self._hold_task = asyncio.get_running_loop().create_task(self._command_rest())
+        elif not lost and self._lost_since is not None:
+            held = (stamp - self._lost_since) * scale
+            self.summary.lost_held_s += held
+            log.warning("pose track recovered at t=%.1f s after %.2f s held at rest: driving on", stamp, held)
+            self._lost_since = None
+        if lost and stamp - self._lost_since >= hold:
+            st = self.processor.estimator.stats
+            waited = f"; not recovered within {self.config.base.lost_hold:g} s held at rest" if hold > 0 else ""
+            self.stop.set(f"pose estimate lost at t={self._lost_since:.1f} s: {st.status_reason}{waited}")
+
+    async def _command_rest(self) -> None:
+        """Zero velocity now (the driver's next command would come up to one period later)."""
+        from drivers.errors import DriverError
+
+        with contextlib.suppress(DriverError):
+            await self.command_velocity(0.0, 0.0)
 
     async def _export_task(self) -> None:
         out = self.config.output

@@ -68,6 +68,9 @@ class BaseConfig:
     max_v: float = setting(0.5, "speed limit for commanded forward velocity (m/s)")
     max_omega: float = setting(1.0472, "speed limit for commanded rotation (rad/s)")
     enable_motors: bool = setting(False, "enable the motors at connection (needed to drive; off = never moves)")
+    lost_hold: float = setting(5.0, "while the pose track is lost, hold the robot at rest up to this long (s; "
+                               "the emulated robot's with --speed) for the estimator to relocalise against the "
+                               "map, then drive on; if it does not, stop the run and say why (0: stop at once)")
 
     def url(self) -> str:
         if self.port.startswith("/"):
@@ -200,6 +203,8 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.no_return_range must be >= 0 m, got {m.no_return_range}")
         if m.keyframe_distance < 0 or m.keyframe_angle_deg < 0 or m.keyframe_max_scans < 0:
             raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
+        if self.base.lost_hold < 0:
+            raise ConfigError(f"base.lost_hold must be >= 0 s, got {self.base.lost_hold}")
         if self.pipeline.queue_size < 1:
             raise ConfigError("pipeline.queue_size must be >= 1")
         if not -20 <= self.pipeline.nice <= 19:
