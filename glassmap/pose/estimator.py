@@ -204,6 +204,7 @@ class EstimatorStats:
     matched: int = 0
     no_match: int = 0
     gated: int = 0
+    wide_searches: int = 0  # key-scan matches searched over the widest window (after a rejected match)
     field_rebuilds: int = 0
     t_core: float = 0.0  # prediction + matching + covariance + fusion of the last scan
     t_field: float = 0.0  # likelihood-field rebuild during the last scan (0 if none)
@@ -358,8 +359,15 @@ class PoseEstimator:
             pts, w, idx = select_points(angles, ranges, self.mount, cfg.matcher)
             if cfg.glass_weighting and GLASS_LAYER in self.occupancy.grid.layer_names and idx.size:
                 w = w * self.glass_weights(self.laser_pose_of(self.scan_pose()), angles[idx], ranges[idx])
-            res = self.matcher.match(self.field, pts, w, self.scan_pose(),
-                                     self._carried(self.ekf.cov) + self.extrapolation_covariance())
+            prior_cov = self._carried(self.ekf.cov) + self.extrapolation_covariance()
+            if st.status == "degraded":
+                # the last match disagreed with the prediction, so the prediction may be off by more than its
+                # covariance says: search the widest window, so that the match is the scan's best fit and not
+                # a local one near a wrong prediction (the gate still judges it against the filter's covariance)
+                st.wide_searches += 1
+                prior_cov = prior_cov + np.diag(np.square([cfg.matcher.xy_window_max, cfg.matcher.xy_window_max,
+                                                           cfg.matcher.yaw_window_max]) / cfg.matcher.window_sigmas ** 2)
+            res = self.matcher.match(self.field, pts, w, self.scan_pose(), prior_cov)
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)
