@@ -365,8 +365,9 @@ class PoseEstimator:
                 # covariance says: search the widest window, so that the match is the scan's best fit and not
                 # a local one near a wrong prediction (the gate still judges it against the filter's covariance)
                 st.wide_searches += 1
-                prior_cov = prior_cov + np.diag(np.square([cfg.matcher.xy_window_max, cfg.matcher.xy_window_max,
-                                                           cfg.matcher.yaw_window_max]) / cfg.matcher.window_sigmas ** 2)
+                mc = cfg.matcher
+                widest = np.array([mc.xy_window_max, mc.xy_window_max, mc.yaw_window_max]) / mc.window_sigmas
+                prior_cov = prior_cov + np.diag(widest ** 2)
             res = self.matcher.match(self.field, pts, w, self.scan_pose(), prior_cov)
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)

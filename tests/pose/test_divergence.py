@@ -182,7 +182,7 @@ def test_after_a_rejected_match_the_search_spans_the_widest_window_until_one_is_
     out = _drive_in_box(est, 70, kick_at=30, kick=np.array([0.0, 0.0, np.radians(5.0)]))
     widest = est.config.matcher.yaw_window_max
     after_rejection = [win for status, win in windows if status == "degraded"]
-    assert after_rejection and min(after_rejection) >= widest
+    assert after_rejection and min(after_rejection) >= widest and est.stats.wide_searches == len(after_rejection)
     assert max(win for status, win in windows[20:29]) < 0.5 * widest  # before the kick: the prediction's window
     assert est.stats.lost_events >= 1 and out[-1][0].status == "ok"
     e, t = out[-1]
