@@ -204,7 +204,7 @@ class EstimatorStats:
     matched: int = 0
     no_match: int = 0
     gated: int = 0
-    wide_searches: int = 0  # key-scan matches searched over the widest window (after a rejected match)
+    wide_searches: int = 0  # key-scan matches searched over the widest heading window (after a rejected match)
     field_rebuilds: int = 0
     t_core: float = 0.0  # prediction + matching + covariance + fusion of the last scan
     t_field: float = 0.0  # likelihood-field rebuild during the last scan (0 if none)
@@ -361,13 +361,14 @@ class PoseEstimator:
                 w = w * self.glass_weights(self.laser_pose_of(self.scan_pose()), angles[idx], ranges[idx])
             prior_cov = self._carried(self.ekf.cov) + self.extrapolation_covariance()
             if st.status == "degraded":
-                # the last match disagreed with the prediction, so the prediction may be off by more than its
-                # covariance says: search the widest window, so that the match is the scan's best fit and not
-                # a local one near a wrong prediction (the gate still judges it against the filter's covariance)
+                # the last match disagreed with the prediction, whose heading may be off by more than its
+                # covariance says (laser and odometry stamps out of step while turning): search the widest
+                # heading window, so that the match is the scan's best fit and not a local one near a wrong
+                # heading; the translation window stays the prediction's, since a wide one reaches the
+                # aliases of a repetitive corridor (the gate still judges against the filter's covariance)
                 st.wide_searches += 1
                 mc = cfg.matcher
-                widest = np.array([mc.xy_window_max, mc.xy_window_max, mc.yaw_window_max]) / mc.window_sigmas
-                prior_cov = prior_cov + np.diag(widest ** 2)
+                prior_cov = prior_cov + np.diag([0.0, 0.0, (mc.yaw_window_max / mc.window_sigmas) ** 2])
             res = self.matcher.match(self.field, pts, w, self.scan_pose(), prior_cov)
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)

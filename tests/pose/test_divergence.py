@@ -167,23 +167,28 @@ def test_a_consistent_heading_offset_is_relocalised_on():
     assert est.stats.lost_events >= 1 and est.stats.ambiguous_events == 0
 
 
-def test_after_a_rejected_match_the_search_spans_the_widest_window_until_one_is_fused():
+def test_after_a_rejected_match_the_search_spans_the_widest_heading_window_until_one_is_fused():
     """Odometry turns 5 deg that the robot does not: the prediction is off by far more than its covariance, so
     the window it sets would hold only matches near the wrong heading. Once a match is rejected, the next
-    key scans search the matcher's widest window, find the true heading, and the track relocalises on it."""
+    key scans search the matcher's widest heading window (the translation window stays the prediction's),
+    find the true heading, and the track relocalises on it."""
     est = PoseEstimator(EstimatorConfig(lost_after=3))
     windows, match = [], est.matcher.match
+    sigmas = est.config.matcher.window_sigmas
 
     def spy(fld, pts, w, prior, cov):
-        windows.append((est.stats.status, est.config.matcher.window_sigmas * np.sqrt(cov[2, 2])))
+        sig_xy = np.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max())
+        windows.append((est.stats.status, sigmas * np.sqrt(cov[2, 2]), sigmas * sig_xy))
         return match(fld, pts, w, prior, cov)
 
     est.matcher.match = spy
     out = _drive_in_box(est, 70, kick_at=30, kick=np.array([0.0, 0.0, np.radians(5.0)]))
     widest = est.config.matcher.yaw_window_max
-    after_rejection = [win for status, win in windows if status == "degraded"]
-    assert after_rejection and min(after_rejection) >= widest and est.stats.wide_searches == len(after_rejection)
-    assert max(win for status, win in windows[20:29]) < 0.5 * widest  # before the kick: the prediction's window
+    after_rejection = [(yaw, xy) for status, yaw, xy in windows if status == "degraded"]
+    assert after_rejection and est.stats.wide_searches == len(after_rejection)
+    assert min(yaw for yaw, _ in after_rejection) >= widest
+    assert max(xy for _, xy in after_rejection) < est.config.matcher.xy_window_max
+    assert max(yaw for status, yaw, _ in windows[20:29]) < 0.5 * widest  # before the kick: the prediction's
     assert est.stats.lost_events >= 1 and out[-1][0].status == "ok"
     e, t = out[-1]
     assert abs(np.degrees(e.pose[2] - t[2])) < 0.3
