@@ -284,10 +284,10 @@ def format_result(res: DemoResult) -> str:
     fe = final_error(res)
     if fe is not None:
         k = fe[1]
+        held = f" (held at rest {s.lost_held_s:.1f} s before recovering)" if s.lost_holds else ""
         lines.append(f"final pose error in the reported covariance: {k:.1f} sigma (xy Mahalanobis; "
                      f"{'inside' if k <= 3 else 'OUTSIDE'} 3 sigma); pose track {s.pose_status or '?'}, "
-                     f"{s.pose_gated} scan matches rejected, lost {s.pose_lost} times"
-                     f"{f' (held at rest {s.lost_held_s:.1f} s before recovering)' if s.lost_holds else ''}, ambiguous "
+                     f"{s.pose_gated} scan matches rejected, lost {s.pose_lost} times{held}, ambiguous "
                      f"{s.pose_ambiguous} times")
     ce = final_error(res, corrected=True)
     if ce is not None:
