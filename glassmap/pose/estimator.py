@@ -25,7 +25,7 @@ import logging
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass, field as dc_field, replace
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from glassmap.pose.filter import PoseEKF, offset_consensus
 from glassmap.pose.filter_jit import carried, rotated
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
-                                   select_points)
+                                   select_points, slid_to_prior)
 from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
 from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 
@@ -114,6 +114,9 @@ class EstimatorConfig:
         information of at least this many points squarely facing it (see
         :func:`~glassmap.pose.matcher.constrained_directions`); the others (along a featureless corridor)
         are not measured by the scan, and the covariance keeps growing along them.
+    slide_to_prior: a match that leaves translations unconstrained measures the pose at the prior's place
+        along them (:func:`~glassmap.pose.matcher.slid_to_prior`): a peak at an alias along a corridor is
+        not read as a heading error.
     lost_after: this many consecutive key scans whose match was rejected by the gate are judged together.
         If they agree with each other (one common offset from the prediction) and, for an offset that shifts
         the pose by ``alias_min_shift`` (m) or more (an alias of a repetitive corridor is a door frame or so
@@ -168,6 +171,7 @@ class EstimatorConfig:
     background_field: bool = True
     gate_chi2: float = 21.1
     constrained_points: float = 10.0
+    slide_to_prior: bool = True
     lost_after: int = 5
     relocalise_lead: float = 0.5
     alias_min_shift: float = 0.1
@@ -370,6 +374,10 @@ class PoseEstimator:
                 mc = cfg.matcher
                 prior_cov = prior_cov + np.diag([0.0, 0.0, (mc.yaw_window_max / mc.window_sigmas) ** 2])
             res = self.matcher.match(self.field, pts, w, self.scan_pose(), prior_cov)
+            if res is not None and cfg.slide_to_prior:
+                res = replace(res, pose=slid_to_prior(res.pose, self.scan_pose(), prior_cov, res.information,
+                                                      res.lever, cfg.likelihood.sigma_hit, cfg.constrained_points,
+                                                      cfg.alias_min_shift))
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)
         st.t_core = t_pred + (time.perf_counter() - t2)

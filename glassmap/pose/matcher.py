@@ -112,6 +112,38 @@ def constrained_directions(information: np.ndarray, lever: float, sigma_hit: flo
     return (vecs[:, keep] / d[:, None]).T
 
 
+def slid_to_prior(pose: np.ndarray, prior: np.ndarray, prior_cov: np.ndarray, information: np.ndarray, lever: float,
+                  sigma_hit: float, min_points: float, min_shift: float = 0.1, min_sigmas: float = 3.0,
+                  max_yaw_share: float = 0.5) -> np.ndarray:
+    """The match ``pose`` (3,) with its translation from ``prior`` (3,) taken out along the directions the
+    match does not constrain (those eigen-directions left out by :func:`constrained_directions` that are
+    mostly translation, yaw share at most ``max_yaw_share`` in the lever-scaled space: their translation
+    parts), so that it measures the pose at the prior's place along them; unchanged when that part is
+    shorter than ``min_shift`` (m; an alias lies a door frame or so away) or within ``min_sigmas`` of the
+    prior's covariance ``prior_cov`` (3, 3), where the peak may well be where the robot is.
+
+    Along a corridor the score repeats along the translation (aliases of doors or niches), while a few end
+    points facing along it tilt the information's unconstrained direction into the yaw: a peak at an alias,
+    fused in the constrained direction that mixes the yaw with that translation, would read as a heading
+    error."""
+    if not np.all(np.isfinite(information)) or not lever > 0:
+        return pose
+    d = np.array([1.0, 1.0, 1.0 / lever])
+    jn = information * np.outer(d, d)
+    vals, vecs = np.linalg.eigh(0.5 * (jn + jn.T))
+    free = vecs[:, vals < min_points / sigma_hit ** 2]
+    along = free[:2, np.abs(free[2]) <= max_yaw_share]  # translation parts of those mostly translation (2, m)
+    if along.shape[1] == 0:
+        return pose
+    coef = np.linalg.lstsq(along, np.asarray(pose[:2], dtype=np.float64) - prior[:2], rcond=None)[0]
+    slide = along @ coef  # the translation from the prior along them (m, map frame)
+    if np.hypot(*slide) < min_shift or slide @ np.linalg.solve(prior_cov[:2, :2], slide) <= min_sigmas ** 2:
+        return pose
+    out = np.array(pose, dtype=np.float64)
+    out[:2] -= slide
+    return out
+
+
 def select_points(angles: np.ndarray, ranges: np.ndarray, mount: np.ndarray, config: MatcherConfig,
                   weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """End points usable for matching, in the base frame: returns (points (m, 2), weights (m,), beam index

@@ -11,9 +11,10 @@ from glassmap.pose import EstimatorConfig, PoseEstimator
 from glassmap.pose.estimator import HIT_LAYERS
 from glassmap.pose.field import LikelihoodField
 from glassmap.pose.filter import PoseEKF
-from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, constrained_directions, select_points
+from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, constrained_directions, select_points,
+                                   slid_to_prior)
 from glassmap.pose.motion import compose
-from glassmap.types import Odometry
+from glassmap.types import Odometry, wrap_angle
 from tests.pose.synth import box, corridor, make_scan
 
 PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
@@ -64,6 +65,40 @@ def test_one_stray_point_is_not_a_constraint():
     assert h.shape[0] == 2 and np.all(np.abs(h[:, 0]) < 1e-9)
 
 
+def _corridor_with_a_jamb(sigma_hit=0.03):
+    """Information (map frame) of end points on the walls of a corridor along x (60 points, x in -5..5 m)
+    and of 8 points on a door jamb facing along it, 1.5 m to the side: too few to constrain x, enough to
+    tilt the unconstrained direction into the yaw."""
+    rows = [np.array([0.0, 1.0, x]) for x in np.linspace(-5.0, 5.0, 60)] + [np.array([1.0, 0.0, -1.5])] * 8
+    return sum(np.outer(n, n) for n in rows) / sigma_hit ** 2
+
+
+def test_sliding_takes_an_alias_along_a_corridor_back_to_the_prior():
+    info, lever = _corridor_with_a_jamb(), 5.0
+    prior = np.array([2.0, 1.0, 0.3])
+    alias = prior + np.array([0.36, 0.0, 0.0])  # the same view one door further along the corridor
+    h = constrained_directions(info, lever, 0.03, 10.0)
+    assert h.shape[0] == 2
+    yaw_row = h[np.argmax(np.abs(h[:, 2]))]
+    assert np.degrees(abs(yaw_row @ (alias - prior)) / abs(yaw_row[2])) > 0.3  # what fusing it unslid reads
+    np.testing.assert_allclose(slid_to_prior(alias, prior, PRIOR, info, lever, 0.03, 10.0), prior, atol=1e-12)
+
+
+def test_sliding_keeps_what_the_match_measures_and_a_peak_near_the_prior():
+    info, lever = _corridor_with_a_jamb(), 5.0
+    prior = np.array([2.0, 1.0, 0.3])
+    across = prior + np.array([0.0, 0.04, np.radians(0.4)])  # across the corridor and in yaw: measured
+    np.testing.assert_array_equal(slid_to_prior(across + [0.4, 0, 0], prior, PRIOR, info, lever, 0.03, 10.0), across)
+    near = prior + np.array([0.08, 0.0, 0.0])  # shorter than an alias's shift (min_shift 0.1 m)
+    tight = PRIOR / 100.0  # 1 cm: the 8 cm are 8 sigma
+    np.testing.assert_array_equal(slid_to_prior(near, prior, tight, info, lever, 0.03, 10.0), near)
+    likely = prior + np.array([0.25, 0.0, 0.0])  # within 3 sigma of the prior's 10 cm
+    np.testing.assert_array_equal(slid_to_prior(likely, prior, PRIOR, info, lever, 0.03, 10.0), likely)
+    full = info + np.diag([50.0, 0.0, 0.0]) / 0.03 ** 2  # the far end wall in view: x constrained too
+    far = across + [0.4, 0, 0]
+    np.testing.assert_array_equal(slid_to_prior(far, prior, PRIOR, full, lever, 0.03, 10.0), far)
+
+
 def test_a_partial_measurement_leaves_the_unmeasured_direction_growing():
     ekf = PoseEKF(np.zeros(3), np.diag([0.01, 0.01, 1e-4]))
     h = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -75,9 +110,9 @@ def test_a_partial_measurement_leaves_the_unmeasured_direction_growing():
     assert full.pose[0] > 0.4  # with all three the x is pulled to the match
 
 
-def _drive_in_box(est, n, kick_at=None, kick=np.zeros(3)):
-    """Drive slowly in a box; odometry jumps by ``kick`` at scan ``kick_at`` (the robot does not)."""
-    segs = box(-3.0, -2.0, 4.0, 2.5)
+def _drive_in_box(est, n, kick_at=None, kick=np.zeros(3), segs=box(-3.0, -2.0, 4.0, 2.5)):
+    """Drive slowly along x in a box (or ``segs``); odometry jumps by ``kick`` at scan ``kick_at`` (the robot
+    does not)."""
     rng = np.random.default_rng(5)
     true, odom = np.zeros(3), np.zeros(3)
     out = []
@@ -93,6 +128,35 @@ def _drive_in_box(est, n, kick_at=None, kick=np.zeros(3)):
         e = est.update(make_scan(segs, compose(true, est.mount), stamp=t, noise=0.01, rng=rng))
         out.append((e, true.copy()))
     return out
+
+
+def test_a_match_at_an_alias_along_a_corridor_leaves_the_heading_alone():
+    """Along a corridor a peak one door further on (a repeating feature) scores as well as the true one, and a
+    few end points facing along the corridor tilt the information's unconstrained direction into the yaw:
+    fused as it is, such a peak reads as a heading error. The estimator slides it back along the corridor to
+    the prediction first (``slide_to_prior``)."""
+
+    def heading_error(slide: bool) -> float:
+        """Mean absolute heading error (deg) over the scans from the first alias on."""
+        est = PoseEstimator(EstimatorConfig(slide_to_prior=slide))
+        n = np.array([1.0, 0.0, -1.5])  # a door jamb 1.5 m to the side, facing along the corridor
+        jamb = 8.0 * np.outer(n, n) / est.config.likelihood.sigma_hit ** 2  # 8 points: below constrained_points
+        match = est.matcher.match
+
+        def at_alias(fld, pts, w, prior, cov):
+            r = match(fld, pts, w, prior, cov)
+            if r is None or est.stats.keyframes < 10:
+                return r
+            info = r.information.copy()
+            info[0, :] = info[:, 0] = 0.0  # the walls: nothing along the corridor (its ragged mapped ends aside)
+            return replace(r, pose=r.pose + np.array([0.36, 0.0, 0.0]), information=info + jamb)
+
+        est.matcher.match = at_alias
+        out = _drive_in_box(est, 80, segs=corridor(40.0))
+        return float(np.mean([abs(np.degrees(wrap_angle(e.pose[2] - t[2]))) for e, t in out[28:]]))
+
+    assert heading_error(True) < 0.12
+    assert heading_error(False) > 0.25  # what the alias does unslid
 
 
 def test_an_odometry_jump_is_gated_not_mapped_and_the_track_is_reported_lost():
