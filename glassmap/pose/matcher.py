@@ -105,11 +105,18 @@ def constrained_directions(information: np.ndarray, lever: float, sigma_hit: flo
     the covariance keep growing along the others."""
     if not np.all(np.isfinite(information)) or not lever > 0:
         return np.eye(3)
+    d, vals, vecs = _lever_scaled_eigen(information, lever)
+    keep = vals >= min_points / sigma_hit ** 2
+    return (vecs[:, keep] / d[:, None]).T
+
+
+def _lever_scaled_eigen(information: np.ndarray, lever: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d, eigenvalues, eigenvectors as columns) of the information with yaw compared with translation through
+    ``lever`` (m): d = (1, 1, 1 / lever) scales it to d J d."""
     d = np.array([1.0, 1.0, 1.0 / lever])
     jn = information * np.outer(d, d)
     vals, vecs = np.linalg.eigh(0.5 * (jn + jn.T))
-    keep = vals >= min_points / sigma_hit ** 2
-    return (vecs[:, keep] / d[:, None]).T
+    return d, vals, vecs
 
 
 def slid_to_prior(pose: np.ndarray, prior: np.ndarray, prior_cov: np.ndarray, information: np.ndarray, lever: float,
@@ -128,9 +135,7 @@ def slid_to_prior(pose: np.ndarray, prior: np.ndarray, prior_cov: np.ndarray, in
     error."""
     if not np.all(np.isfinite(information)) or not lever > 0:
         return pose
-    d = np.array([1.0, 1.0, 1.0 / lever])
-    jn = information * np.outer(d, d)
-    vals, vecs = np.linalg.eigh(0.5 * (jn + jn.T))
+    _, vals, vecs = _lever_scaled_eigen(information, lever)
     free = vecs[:, vals < min_points / sigma_hit ** 2]
     along = free[:2, np.abs(free[2]) <= max_yaw_share]  # translation parts of those mostly translation (2, m)
     if along.shape[1] == 0:
