@@ -10,10 +10,16 @@ the first incomplete or damaged record, and a file without summary or footer rea
 chunk is decompressed and walked whole before any of its messages comes out, so a damaged chunk gives none.
 CRCs are not checked (StreamReader does not check them by default either): a damaged chunk shows as a
 decompression error or as records that run past its end.
+
+A complete file (footer, summary with Schema, Channel and Chunk Index records) also says which channels
+each chunk holds messages of: a chunk with none of the wanted channels is skipped without being
+decompressed (the recorder writes each map in a chunk of its own, so a raw replay does not decompress the
+maps); damage inside a skipped chunk is then not seen.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import struct
@@ -25,7 +31,8 @@ from runtime.recorder import McapRecord
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89MCAP0\r\n"
-_FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+_FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _CHUNK_INDEX = 0x02, 0x03, 0x04, 0x05, 0x06, 0x08
+_TAIL = 9 + 20 + len(MAGIC)  # the footer record (summary start, summary offset start, CRC) and the closing magic
 
 _RECORD = struct.Struct("<BQ")  # opcode, content length
 _U16 = struct.Struct("<H")
@@ -87,6 +94,11 @@ class _Walker:
         self._channels: dict[int, tuple[str, int]] = {}  # channel id -> (topic, schema id)
         self._chosen: dict[int, tuple[str, str] | None] = {}  # channel id -> (topic, schema name) or None
         self._zstd: list = []
+
+    def choice(self, channel_id: int) -> tuple[str, str] | None:
+        """(topic, schema name) of a wanted channel, None for one not wanted or not defined yet."""
+        chosen = self._chosen
+        return chosen[channel_id] if channel_id in chosen else self._choose(channel_id)
 
     def _choose(self, channel_id: int) -> tuple[str, str] | None:
         ch = self._channels.get(channel_id)
@@ -160,15 +172,55 @@ class _Walker:
         return out
 
 
+def _unwanted_chunks(f, size: int, wanted: Wanted) -> set[int]:
+    """File offsets of the Chunk records that hold messages of none of the wanted channels, from the summary
+    (whose Schema and Channel records define every channel up front); empty for a file without a footer or
+    summary, or with a summary that does not parse."""
+    if size < len(MAGIC) + _TAIL:
+        return set()
+    f.seek(size - _TAIL)
+    tail = f.read(_TAIL)
+    if tail[9 + 20:] != MAGIC or tail[0] != _FOOTER:
+        return set()
+    start = _U64.unpack_from(tail, 9)[0]
+    if not len(MAGIC) <= start < size - _TAIL:
+        return set()
+    f.seek(start)
+    buf = f.read(size - _TAIL - start)
+    summary = _Walker(wanted)
+    chunks: list[tuple[int, list[int]]] = []  # (chunk offset, its channels)
+    pos = 0
+    try:
+        while pos < len(buf):
+            op, length = _RECORD.unpack_from(buf, pos)
+            body, pos = pos + _RECORD.size, pos + _RECORD.size + length
+            if pos > len(buf):
+                return set()
+            if op == _SCHEMA or op == _CHANNEL:
+                summary.definition(op, buf, body, pos)
+            elif op == _CHUNK_INDEX:  # start and end time, chunk offset and length, then {channel: offset}
+                offset = _U64.unpack_from(buf, body + 16)[0]
+                n = _U32.unpack_from(buf, body + 32)[0]
+                if n % 10 or body + 36 + n > pos:
+                    return set()
+                chunks.append((offset, [_U16.unpack_from(buf, body + 36 + i)[0] for i in range(0, n, 10)]))
+    except (DamagedRecord, struct.error):
+        return set()
+    return {off for off, ids in chunks if ids and all(summary.choice(cid) is None for cid in ids)}
+
+
 def iter_channel_messages(path: str | Path, wanted: Wanted) -> Iterator[McapRecord]:
     """The messages of the channels ``wanted(topic, schema name)`` accepts, in file order (see the module
     docstring: also from a file cut short or damaged; stops at the footer)."""
+    wanted = functools.cache(wanted)  # asked once per channel, by the summary and the walk alike
     walker = _Walker(wanted)
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         if f.read(len(MAGIC)) != MAGIC:
             log.info("%s: not an MCAP file (no magic at its start)", path)
             return
+        skip = _unwanted_chunks(f, size, wanted)
+        f.seek(len(MAGIC))
         pos = len(MAGIC)
         while True:
             head = f.read(_RECORD.size)
@@ -182,7 +234,7 @@ def iter_channel_messages(path: str | Path, wanted: Wanted) -> Iterator[McapReco
                 return
             if op == _FOOTER:
                 return
-            if op not in (_CHUNK, _MESSAGE, _SCHEMA, _CHANNEL):
+            if op not in (_CHUNK, _MESSAGE, _SCHEMA, _CHANNEL) or (op == _CHUNK and pos - _RECORD.size in skip):
                 f.seek(length, os.SEEK_CUR)
                 pos += length
                 continue

@@ -6,7 +6,9 @@ library and compresses chunks. A chunk is closed when it exceeds ``chunk_size`` 
 ``chunk_interval`` seconds, and is flushed to the OS at once: if the process is killed (SIGKILL, power
 loss of the laptop's disk cache aside) everything up to the last completed chunk is in the file. Such a
 file has no summary and footer; :func:`read_mcap` reads it anyway and :func:`recover_mcap` rewrites it into
-a complete file (for Foxglove and rosbags' AnyReader).
+a complete file (for Foxglove and rosbags' AnyReader). A message larger than ``chunk_size`` (a map) gets a
+chunk of its own, which a reader of the other channels (a raw replay, :mod:`runtime.mcap_walk`) skips
+without decompressing it.
 
 Splits (long field sessions): with ``split_size`` (bytes) and/or ``split_duration`` (s) the recording is a
 series of complete files ``<stem>_0000.mcap``, ``<stem>_0001.mcap``, ... (names sort in time order). The
@@ -267,6 +269,12 @@ class McapRecorder:
                         if self._split_due():
                             self._next_split()
                             last_flush, dirty = time.monotonic(), False
+                        if dirty and len(data) > self.chunk_size:
+                            # a map: in a chunk of its own (the writer closes a chunk past chunk_size), so
+                            # that a reader of the other channels (a raw replay) skips it undecompressed
+                            self._writer.flush()
+                            self.stats.chunks_flushed += 1
+                            last_flush = time.monotonic()
                         self._add(topic, data, log_ns, pub_ns)
                         added = True
                         if topic in LATCHED_TOPICS:

@@ -6,6 +6,7 @@ import logging
 import struct
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
@@ -37,9 +38,9 @@ def _rosbags_chunks(path) -> list[RawChunk]:
     return out
 
 
-def _record(path: Path, compression: str = "zstd") -> Path:
+def _record(path: Path, compression: str = "zstd", maps: bool = False) -> Path:
     """A recording as the runtime writes it: a laser and a base capture's bytes between scans, odometry and
-    /tf, in several chunks."""
+    /tf, in several chunks; with ``maps``, a glass map (larger than a chunk) every 20 events."""
     laser = Capture.load(CAPTURES / "hokuyo-me-stream.jsonl")
     base = Capture.load(CAPTURES / "pioneer-p3dx-drive.jsonl")
     tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
@@ -54,6 +55,10 @@ def _record(path: Path, compression: str = "zstd") -> Path:
                 rec.write("/scan", M.laser_scan_msg(make_scan(100.0 + t, i, n=200), ns), ns)
                 rec.write("/odom", M.odometry_msg(make_odom(100.0 + t, float(i)), ns), ns)
                 rec.write("/tf", M.tf_msg([M.transform_stamped(ns, "odom", "base_link", 0.1 * i, 0.0, 0.0)]), ns)
+            if maps and i % 20 == 10:
+                conf = np.full((60, 60), np.nan, dtype=np.float32)
+                conf[10:50, 30] = 0.01 * i
+                rec.write("/glass/map", M.glass_grid_msg(conf, (0.0, 0.0), 0.05, ns), ns)
     return path
 
 
@@ -187,3 +192,41 @@ def test_not_mcap_gives_nothing(tmp_path):
     assert list(iter_channel_messages(path, _is_raw)) == []
     path.write_bytes(b"")
     assert list(iter_channel_messages(path, _is_raw)) == []
+
+
+def _chunk_topics(path: Path) -> list[set[str]]:
+    """The topics of the messages in each chunk, in file order (the summary's Chunk Index records)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    return [{summary.channels[c].topic for c in ci.message_index_offsets}
+            for ci in sorted(summary.chunk_indexes, key=lambda ci: ci.chunk_start_offset)]
+
+
+def test_a_map_gets_a_chunk_of_its_own_that_a_raw_reading_skips(tmp_path):
+    path = _record(tmp_path / "maps.mcap", maps=True)
+    topics = _chunk_topics(path)
+    assert topics.count({"/glass/map"}) >= 3 and not any("/glass/map" in t and len(t) > 1 for t in topics)
+    for wanted in (_is_raw, lambda t, m: True, lambda t, m: t == "/glass/map"):
+        assert list(iter_channel_messages(path, wanted)) == _library(path, wanted)
+    # a damaged map chunk: the raw reading never decompresses it, the library stops there
+    data = bytearray(path.read_bytes())
+    chunks = [(off, length) for off, op, length in _top_level(bytes(data)) if op == 0x06]
+    off, _ = chunks[[i for i, t in enumerate(topics) if t == {"/glass/map"}][1]]
+    name_len = struct.unpack_from("<I", data, off + 9 + 28)[0]
+    records = off + 9 + 32 + name_len + 8
+    data[records:records + 4] = b"\xde\xad\xbe\xef"
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    assert list(iter_channel_messages(damaged, _is_raw)) == _library(path)
+    assert len(_library(damaged)) < len(_library(path))
+
+
+def test_a_file_without_summary_decompresses_every_chunk(tmp_path):
+    path = _record(tmp_path / "maps.mcap", maps=True)
+    data = path.read_bytes()
+    data_end = next(off for off, op, _ in _top_level(data) if op == 0x0F)
+    cut = tmp_path / "nosummary.mcap"
+    cut.write_bytes(data[:data_end])
+    assert list(iter_channel_messages(cut, _is_raw)) == _library(path)
