@@ -46,12 +46,16 @@ class ChainConfig:
     """motion: the odometry noise model of a step; match_scale: multiplies the matched poses' covariance of a
     step both ends of which were matched; min_sigma: (x, y, yaw) standard deviations added to every step (m, m,
     rad); chain_scale: multiplies a step's (x, y, yaw) standard deviations (x, y in the frame of its first key
-    scan); x keeps its scale 1 where a key scan at either end was matched in fewer than three directions."""
+    scan); x keeps its scale 1 where a key scan at either end was matched in fewer than three directions;
+    scale_sigma: standard deviation of the map's scale error (relative), reported by :class:`DriftChain` only:
+    the matches' forward bias, carried from key scan to key scan through the map, places a pose off by about
+    scale times its displacement from the start (docs/pose.md, "Start-up bias")."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
     chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
+    scale_sigma: float = 0.0008
 
     def step_covariance(self, prev: KeyScan, key: KeyScan) -> np.ndarray:
         """Covariance (3, 3) of the step from key scan ``prev`` to ``key`` (in ``prev``'s frame), before
@@ -95,6 +99,7 @@ class DriftChain:
         self.config = config
         self.key: KeyScan | None = None  # the newest key scan
         self.cov = np.asarray(initial_cov, dtype=np.float64).copy()  # its covariance (before it: the start's)
+        self.start: np.ndarray | None = None  # the first key scan's position (m, map frame)
 
     def add(self, key: KeyScan) -> None:
         """Compound the step to a new key scan."""
@@ -102,10 +107,16 @@ class DriftChain:
             cfg = self.config
             step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
             self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
+        else:
+            self.start = np.asarray(key.pose[:2], dtype=np.float64).copy()
         self.key = key
 
     def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:
         """Covariance (3, 3) of the front end's pose ``pose`` (base, map frame) at ``stamp`` (s)."""
         if self.key is None:
             return self.cov.copy()
-        return self.config.carried(self.key.pose, self.cov, relative(self.key.pose, pose), stamp - self.key.stamp)
+        cov = self.config.carried(self.key.pose, self.cov, relative(self.key.pose, pose), stamp - self.key.stamp)
+        if self.config.scale_sigma > 0.0:
+            d = self.config.scale_sigma * (np.asarray(pose[:2], dtype=np.float64) - self.start)
+            cov[:2, :2] += np.outer(d, d)
+        return cov

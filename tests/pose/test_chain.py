@@ -33,7 +33,7 @@ def test_the_chain_is_the_pose_graphs_marginal_without_closures():
 
 
 def test_the_chain_grows_from_the_newest_key_scan_with_the_motion_since():
-    cfg = ChainConfig()
+    cfg = ChainConfig(scale_sigma=0.0)
     chain = DriftChain(cfg, np.eye(3) * 1e-6)
     assert np.array_equal(chain.covariance_at(np.ones(3), 5.0), np.eye(3) * 1e-6)  # before any key scan
     keys = _keys(30)
@@ -53,3 +53,23 @@ def test_a_chain_of_matched_steps_is_stiffer_than_odometry():
         scaled.add(key)
         odometry.add(_key(key.seq, key.pose, 0))
     assert np.all(np.diag(scaled.cov) < np.diag(odometry.cov))
+
+
+def test_the_maps_scale_error_grows_with_the_displacement_from_the_start():
+    """The map's scale error (scale_sigma) adds (scale_sigma d)(scale_sigma d)^T, d the position's displacement
+    from the first key scan: nothing at the start, along d only, and back to nothing on returning there."""
+    keys = _keys(30)
+    plain = DriftChain(ChainConfig(scale_sigma=0.0), np.eye(3) * 1e-6)
+    scaled = DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    for key in keys:
+        plain.add(key)
+        scaled.add(key)
+    sigma = ChainConfig().scale_sigma
+    assert sigma > 0.0
+    last = keys[-1]
+    for pose, stamp in ((last.pose, last.stamp), (np.array([3.0, 4.0, 0.2]), last.stamp + 1.0),
+                        (keys[0].pose, last.stamp + 2.0)):
+        d = sigma * (pose[:2] - keys[0].pose[:2])
+        extra = scaled.covariance_at(pose, stamp) - plain.covariance_at(pose, stamp)
+        np.testing.assert_allclose(extra[:2, :2], np.outer(d, d), atol=1e-15)
+        assert np.all(extra[2] == 0.0) and np.all(extra[:, 2] == 0.0)
