@@ -95,11 +95,6 @@ class _Walker:
         self._chosen: dict[int, tuple[str, str] | None] = {}  # channel id -> (topic, schema name) or None
         self._zstd: list = []
 
-    def choice(self, channel_id: int) -> tuple[str, str] | None:
-        """(topic, schema name) of a wanted channel, None for one not wanted or not defined yet."""
-        chosen = self._chosen
-        return chosen[channel_id] if channel_id in chosen else self._choose(channel_id)
-
     def _choose(self, channel_id: int) -> tuple[str, str] | None:
         ch = self._channels.get(channel_id)
         if ch is None:  # a message before its channel: StreamReader's readers skip it too
@@ -206,7 +201,7 @@ def _unwanted_chunks(f, size: int, wanted: Wanted) -> set[int]:
                 chunks.append((offset, [_U16.unpack_from(buf, body + 36 + i)[0] for i in range(0, n, 10)]))
     except (DamagedRecord, struct.error):
         return set()
-    return {off for off, ids in chunks if ids and all(summary.choice(cid) is None for cid in ids)}
+    return {off for off, ids in chunks if ids and all(summary._choose(cid) is None for cid in ids)}
 
 
 def iter_channel_messages(path: str | Path, wanted: Wanted) -> Iterator[McapRecord]:
