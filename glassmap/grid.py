@@ -123,7 +123,15 @@ class OccupancyParams:
     l_min/l_max clamp; occ_threshold/free_threshold classify probabilities; max_free_range (m) caps how
     far a beam clears space (long beams are less trustworthy, and glass lets beams through);
     no_return_range (m) is how far a beam with no return (+inf) clears: 0 by default, because near glass
-    "no return" usually means the pulse was reflected away, not that the space is empty.
+    "no return" usually means the pulse was reflected away, not that the space is empty; hit_margin (m):
+    a beam with a return clears space only up to this far short of its end point (at least one cell).
+
+    Why a margin of several cells: range noise spreads a surface's end points over a band a cell or two
+    deep, and a beam meeting the surface obliquely runs through that band for a long way before its end
+    point (depth / cos(incidence)). Clearing up to one cell short of the end point, the beams that
+    measured long erase the band's cells nearest to the sensor while the cells behind the surface keep
+    their hits: surfaces lean away from where they were seen, scan matching pushes the robot towards what
+    it looks at and a map built from matched poses comes out stretched along the route.
     """
 
     l_occ: float = 0.85
@@ -134,6 +142,7 @@ class OccupancyParams:
     free_threshold: float = 0.35
     max_free_range: float = 20.0
     no_return_range: float = 0.0
+    hit_margin: float = 0.2
 
 
 class OccupancyGrid:
@@ -197,10 +206,10 @@ class OccupancyGrid:
                              "to have it evaluated after the grid grows)")
 
         # Free space: samples every 0.7 cell along each clearing beam (ragged: each beam only up to its own
-        # length), stopping one cell short of a hit; each cell crossed is lowered once per scan, each hit
-        # cell then raised once (glassmap/grid_jit.py).
+        # length), stopping hit_margin (at least one cell) short of a hit; each cell crossed is lowered once
+        # per scan, each hit cell then raised once (glassmap/grid_jit.py).
         step = 0.7 * g.resolution
-        lengths = free_len[clear] - np.where(hit[clear], g.resolution, 0.0)
+        lengths = free_len[clear] - np.where(hit[clear], max(p.hit_margin, g.resolution), 0.0)
         counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
         lo = self.log_odds
         fx = np.float32((pose[0] - g.origin[0]) / g.resolution)

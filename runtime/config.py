@@ -110,6 +110,9 @@ class MappingConfig:
     no_return_range: float = setting(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
                                      "(near glass 'no return' often means the pulse was reflected away; 20 m "
                                      "made the office glass map's error 37 % instead of 12 %)")
+    hit_margin: float = setting(0.2, "a beam with a return clears free space only up to this far short of its end "
+                                "point (m; at least one cell): clearing closer erases the near side of surfaces "
+                                "seen obliquely, and the map comes out stretched along the route")
     keyframe_distance: float = setting(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
                                         "when the base moved this far (m) since the last key scan (0 with "
                                         "keyframe_angle_deg 0 = every scan); every scan still gets a pose and "
@@ -201,6 +204,8 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.max_free_range must be > 0 m, got {m.max_free_range}")
         if m.no_return_range < 0:
             raise ConfigError(f"mapping.no_return_range must be >= 0 m, got {m.no_return_range}")
+        if m.hit_margin < 0:
+            raise ConfigError(f"mapping.hit_margin must be >= 0 m, got {m.hit_margin}")
         if m.keyframe_distance < 0 or m.keyframe_angle_deg < 0 or m.keyframe_max_scans < 0:
             raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
         if self.base.lost_hold < 0:

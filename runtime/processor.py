@@ -50,7 +50,8 @@ class MappingProcessor:
                        keyframe_max_scans=mapping.keyframe_max_scans,
                        integrate=mapping.occupancy_update == "estimator",
                        occupancy=replace(ecfg.occupancy, max_free_range=mapping.max_free_range,
-                                         no_return_range=mapping.no_return_range),
+                                         no_return_range=mapping.no_return_range,
+                                         hit_margin=mapping.hit_margin),
                        initial_pose=(mapping.initial_x, mapping.initial_y, mapping.initial_yaw))
         self.estimator = PoseEstimator(ecfg)
         mcfg = mapper_config or MapperConfig(registration=mapping.registration, window=mapping.window,

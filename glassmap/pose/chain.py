@@ -49,7 +49,7 @@ class ChainConfig:
     scan); x keeps its scale 1 where a key scan at either end was matched in fewer than three directions;
     scale_sigma: standard deviation of the map's scale error (relative), reported by :class:`DriftChain` only:
     the matches' forward bias, carried from key scan to key scan through the map, places a pose off by about
-    scale times its displacement from the start (docs/pose.md, "Start-up bias")."""
+    scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30")."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1

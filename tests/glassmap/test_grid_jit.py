@@ -9,7 +9,7 @@ from tests.pose.synth import make_scan, room_with_corner
 
 
 def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None) -> int:
-    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e)."""
+    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e), with the hit margin."""
     pose, angles, ranges, hit, clear, free_len, c, s = occ._scan_geometry(laser_pose, angles, ranges, range_max)
     if not clear.any():
         return 0
@@ -24,7 +24,7 @@ def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30
     if callable(protect):
         protect = protect()
     step = 0.7 * g.resolution
-    lengths = free_len[clear] - np.where(hit[clear], g.resolution, 0.0)
+    lengths = free_len[clear] - np.where(hit[clear], max(p.hit_margin, g.resolution), 0.0)
     counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
     lo = occ.log_odds
     total = int(counts.sum())
@@ -50,7 +50,7 @@ def test_integrate_equals_the_numpy_ray_walk_to_the_bit():
     segs = room_with_corner()
     rng = np.random.default_rng(11)
     for params in (OccupancyParams(), OccupancyParams(no_return_range=2.5, max_free_range=3.0, l_free=-0.37,
-                                                      l_occ=0.91, l_min=-1.3, l_max=1.7)):
+                                                      l_occ=0.91, l_min=-1.3, l_max=1.7, hit_margin=0.0)):
         a = OccupancyGrid(MapGrid(shape=(60, 80), origin=(-1.5, -2.0), grow_step_m=2.0), params)
         b = OccupancyGrid(MapGrid(shape=(60, 80), origin=(-1.5, -2.0), grow_step_m=2.0), params)
         for i in range(14):

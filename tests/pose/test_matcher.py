@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from glassmap.grid import MapGrid, OccupancyGrid
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, select_points
 from tests.pose.synth import box, corridor, make_scan, room_with_corner
@@ -12,8 +12,10 @@ PRIOR = np.diag([0.1 ** 2, 0.1 ** 2, np.radians(2.0) ** 2])
 
 
 def _map_from(segments, poses, center=np.zeros(2)):
-    """Likelihood field of the occupancy from noisy scans taken at the true ``poses``."""
-    occ = OccupancyGrid(MapGrid())
+    """Likelihood field of the occupancy from noisy scans taken at the true ``poses`` (walls at cell centres;
+    beams clear up to one cell short of their end points, so that a wall is one cell thick and its cell
+    centres lie on the surface)."""
+    occ = OccupancyGrid(MapGrid(), OccupancyParams(hit_margin=0.0))
     for i, p in enumerate(poses):
         s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
         occ.integrate(p, s.angles, s.ranges)
