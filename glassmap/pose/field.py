@@ -207,8 +207,8 @@ class LikelihoodField:
         inherits it: a drift along the direction of travel (office: +0.25 % of the distance with perfect
         odometry). Pooling all end points of the neighbourhood, including the ones in cells that were
         cleared, puts the wall back at the mean of everything that was measured there. (The occupancy
-        update's ``OccupancyParams.hit_margin`` now keeps most of those cells from being cleared; pooling
-        covers the rest.)
+        update's ``OccupancyParams.hit_margin`` keeps most of those cells from being cleared; pooling covers
+        the rest.)
 
         Normals: the count-weighted scatter of the cell means in the 5 x 5 neighbourhood (long enough for a
         wall two cells thick to look like a line); where it is elongated (smaller eigenvalue below
