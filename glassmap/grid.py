@@ -124,14 +124,19 @@ class OccupancyParams:
     far a beam clears space (long beams are less trustworthy, and glass lets beams through);
     no_return_range (m) is how far a beam with no return (+inf) clears: 0 by default, because near glass
     "no return" usually means the pulse was reflected away, not that the space is empty; hit_margin (m):
-    a beam with a return clears space only up to this far short of its end point (at least one cell).
+    a beam with a return at the edge of a surface clears space only up to this far short of its end point
+    (at least one cell); surface_margin (m): the same for a beam inside a continuous surface, i.e. whose
+    neighbours EDGE_BEAMS either side both have returns less than EDGE_CHORD apart (at least one cell).
 
     Why a margin of several cells: range noise spreads a surface's end points over a band a cell or two
     deep, and a beam meeting the surface obliquely runs through that band for a long way before its end
     point (depth / cos(incidence)). Clearing up to one cell short of the end point, the beams that
     measured long erase the band's cells nearest to the sensor while the cells behind the surface keep
     their hits: surfaces lean away from where they were seen, scan matching pushes the robot towards what
-    it looks at and a map built from matched poses comes out stretched along the route.
+    it looks at and a map built from matched poses comes out stretched along the route. Where the beams
+    meet a continuous surface, neighbouring beams re-mark the band, and a long margin there leaves the
+    surface's free side unknown instead (maps shrink); the band is lost at a surface's edges (range jumps,
+    long range, grazing incidence), hence the long margin there only.
     """
 
     l_occ: float = 0.85
@@ -143,6 +148,28 @@ class OccupancyParams:
     max_free_range: float = 20.0
     no_return_range: float = 0.0
     hit_margin: float = 0.2
+    surface_margin: float = 0.1
+
+
+EDGE_BEAMS = 3
+"""A beam is inside a surface when the end points this many beams either side of it both exist..."""
+EDGE_CHORD = 0.3
+"""... and are less than this far apart (m)."""
+
+
+def hit_margins(angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray, edge: float, surface: float) -> np.ndarray:
+    """Per beam, how far short of its end point it stops clearing (m): ``surface`` for a beam inside a
+    continuous surface (see :class:`OccupancyParams`), ``edge`` otherwise. angles, ranges (n,) in the laser
+    frame; hit (n,) bool: beams with a return."""
+    n, k = ranges.shape[0], EDGE_BEAMS
+    margins = np.full(n, edge)
+    if n > 2 * k and surface != edge:
+        r = np.where(hit, ranges, np.nan)
+        x, y = r * np.cos(angles), r * np.sin(angles)
+        with np.errstate(invalid="ignore"):
+            inside = np.hypot(x[2 * k:] - x[:-2 * k], y[2 * k:] - y[:-2 * k]) < EDGE_CHORD
+        margins[k:-k][inside] = surface
+    return margins
 
 
 class OccupancyGrid:
@@ -206,10 +233,11 @@ class OccupancyGrid:
                              "to have it evaluated after the grid grows)")
 
         # Free space: samples every 0.7 cell along each clearing beam (ragged: each beam only up to its own
-        # length), stopping hit_margin (at least one cell) short of a hit; each cell crossed is lowered once
-        # per scan, each hit cell then raised once (glassmap/grid_jit.py).
+        # length), stopping hit_margin or surface_margin (at least one cell) short of a hit; each cell crossed
+        # is lowered once per scan, each hit cell then raised once (glassmap/grid_jit.py).
         step = 0.7 * g.resolution
-        lengths = free_len[clear] - np.where(hit[clear], max(p.hit_margin, g.resolution), 0.0)
+        margins = hit_margins(angles, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
+        lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
         counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
         lo = self.log_odds
         fx = np.float32((pose[0] - g.origin[0]) / g.resolution)

@@ -110,9 +110,13 @@ class MappingConfig:
     no_return_range: float = setting(0.0, "a beam with no return (+inf) clears free space this far (m); 0 = not at all "
                                      "(near glass 'no return' often means the pulse was reflected away; 20 m "
                                      "made the office glass map's error 37 % instead of 12 %)")
-    hit_margin: float = setting(0.2, "a beam with a return clears free space only up to this far short of its end "
-                                "point (m; at least one cell): clearing closer erases the near side of surfaces "
-                                "seen obliquely, and the map comes out stretched along the route")
+    hit_margin: float = setting(0.2, "a beam with a return at the edge of a surface (a range jump, long range, "
+                                "grazing incidence) clears free space only up to this far short of its end point "
+                                "(m; at least one cell): clearing closer erases the near side of surfaces seen "
+                                "obliquely, and the map comes out stretched along the route")
+    surface_margin: float = setting(0.1, "the same for a beam inside a continuous surface (its neighbours 3 beams "
+                                    "either side less than 0.3 m apart; m, at least one cell): a long margin there "
+                                    "leaves the surface's free side unknown, and the map comes out shrunk")
     keyframe_distance: float = setting(0.05, "motion filter: scan matching and the occupancy update run on a scan only "
                                         "when the base moved this far (m) since the last key scan (0 with "
                                         "keyframe_angle_deg 0 = every scan); every scan still gets a pose and "
@@ -204,8 +208,9 @@ class RuntimeConfig:
             raise ConfigError(f"mapping.max_free_range must be > 0 m, got {m.max_free_range}")
         if m.no_return_range < 0:
             raise ConfigError(f"mapping.no_return_range must be >= 0 m, got {m.no_return_range}")
-        if m.hit_margin < 0:
-            raise ConfigError(f"mapping.hit_margin must be >= 0 m, got {m.hit_margin}")
+        if m.hit_margin < 0 or m.surface_margin < 0:
+            raise ConfigError(f"mapping.hit_margin and surface_margin must be >= 0 m, got {m.hit_margin} and "
+                              f"{m.surface_margin}")
         if m.keyframe_distance < 0 or m.keyframe_angle_deg < 0 or m.keyframe_max_scans < 0:
             raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
         if self.base.lost_hold < 0:

@@ -51,7 +51,7 @@ class MappingProcessor:
                        integrate=mapping.occupancy_update == "estimator",
                        occupancy=replace(ecfg.occupancy, max_free_range=mapping.max_free_range,
                                          no_return_range=mapping.no_return_range,
-                                         hit_margin=mapping.hit_margin),
+                                         hit_margin=mapping.hit_margin, surface_margin=mapping.surface_margin),
                        initial_pose=(mapping.initial_x, mapping.initial_y, mapping.initial_yaw))
         self.estimator = PoseEstimator(ecfg)
         mcfg = mapper_config or MapperConfig(registration=mapping.registration, window=mapping.window,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams, hit_margins
 
 
 def test_world_cell_round_trip():
@@ -72,6 +72,19 @@ def test_the_hit_margin_keeps_the_near_side_of_a_wall_seen_obliquely():
     lost_default = np.mean([1 - _share_of_wall_points_in_occupied_cells(OccupancyParams(), y) for y in walls])
     assert lost_one_cell > 0.03
     assert lost_default < 0.5 * lost_one_cell
+
+
+def test_beams_inside_a_continuous_surface_get_the_surface_margin_and_its_edges_the_long_one():
+    angles = np.radians(np.arange(-20.0, 20.0, 0.25))  # 160 beams at the UTM-30LX's spacing
+    ranges = 2.0 / np.cos(angles)  # a wall 2 m ahead: neighbours 3 beams apart lie 5 cm apart
+    ranges[80:] += 1.5  # a range jump: the wall steps back 1.5 m from beam 80 on
+    ranges[120] = np.nan  # a beam without a return: the beams 3 either side lose one of their neighbours
+    hit = np.isfinite(ranges)
+    m = hit_margins(angles, ranges, hit, edge=0.2, surface=0.1)
+    edge = np.flatnonzero(m == 0.2)
+    assert set(edge) == {0, 1, 2, 77, 78, 79, 80, 81, 82, 117, 123, 157, 158, 159}
+    assert np.all(np.delete(m, edge) == 0.1)
+    assert np.all(hit_margins(angles, ranges, hit, edge=0.2, surface=0.2) == 0.2)
 
 
 def test_no_return_clears_only_when_configured_and_nan_is_ignored():

@@ -4,12 +4,12 @@ growth of the grid, values clamped at the limits (only the cells a scan changes 
 
 import numpy as np
 
-from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams
+from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams, hit_margins
 from tests.pose.synth import make_scan, room_with_corner
 
 
 def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None) -> int:
-    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e), with the hit margin."""
+    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e), with the hit margins."""
     pose, angles, ranges, hit, clear, free_len, c, s = occ._scan_geometry(laser_pose, angles, ranges, range_max)
     if not clear.any():
         return 0
@@ -24,7 +24,8 @@ def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30
     if callable(protect):
         protect = protect()
     step = 0.7 * g.resolution
-    lengths = free_len[clear] - np.where(hit[clear], max(p.hit_margin, g.resolution), 0.0)
+    margins = hit_margins(angles, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
+    lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
     counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
     lo = occ.log_odds
     total = int(counts.sum())

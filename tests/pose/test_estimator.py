@@ -130,7 +130,7 @@ def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
     # (a start known to 1 cm / 10 mrad: with the default 0.1 mm the prior holds the robot and hides the drag)
     est = PoseEstimator(EstimatorConfig(laser_mount=(0, 0, 0), subcell_walls=subcell, field_refresh_scans=1,
                                         keyframe_distance=0.0, keyframe_angle=0.0, initial_sigma=(1e-2,) * 3,
-                                        occupancy=OccupancyParams() if subcell else OccupancyParams(hit_margin=0.0)))
+                                        occupancy=OccupancyParams() if subcell else OccupancyParams(hit_margin=0.0, surface_margin=0.0)))
     rng = np.random.default_rng(0)
     for k in range(15):
         e = est.update(make_scan(segs, np.zeros(3), stamp=0.025 * k, noise=0.01, rng=rng))

@@ -15,7 +15,7 @@ def _map_from(segments, poses, center=np.zeros(2)):
     """Likelihood field of the occupancy from noisy scans taken at the true ``poses`` (walls at cell centres;
     beams clear up to one cell short of their end points, so that a wall is one cell thick and its cell
     centres lie on the surface)."""
-    occ = OccupancyGrid(MapGrid(), OccupancyParams(hit_margin=0.0))
+    occ = OccupancyGrid(MapGrid(), OccupancyParams(hit_margin=0.0, surface_margin=0.0))
     for i, p in enumerate(poses):
         s = make_scan(segments, p, noise=0.01, rng=np.random.default_rng(100 + i))
         occ.integrate(p, s.angles, s.ranges)
