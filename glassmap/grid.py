@@ -157,15 +157,16 @@ EDGE_CHORD = 0.3
 """... and are less than this far apart (m)."""
 
 
-def hit_margins(angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray, edge: float, surface: float) -> np.ndarray:
+def hit_margins(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, hit: np.ndarray, edge: float,
+                surface: float) -> np.ndarray:
     """Per beam, how far short of its end point it stops clearing (m): ``surface`` for a beam inside a
-    continuous surface (see :class:`OccupancyParams`), ``edge`` otherwise. angles, ranges (n,) in the laser
-    frame; hit (n,) bool: beams with a return."""
+    continuous surface (see :class:`OccupancyParams`), ``edge`` otherwise. c, s (n,): the beams' direction
+    cosines and sines (any one frame); ranges (n,) m; hit (n,) bool: beams with a return."""
     n, k = ranges.shape[0], EDGE_BEAMS
     margins = np.full(n, edge)
     if n > 2 * k and surface != edge:
         r = np.where(hit, ranges, np.nan)
-        x, y = r * np.cos(angles), r * np.sin(angles)
+        x, y = r * c, r * s
         with np.errstate(invalid="ignore"):
             inside = np.hypot(x[2 * k:] - x[:-2 * k], y[2 * k:] - y[:-2 * k]) < EDGE_CHORD
         margins[k:-k][inside] = surface
@@ -236,7 +237,7 @@ class OccupancyGrid:
         # length), stopping hit_margin or surface_margin (at least one cell) short of a hit; each cell crossed
         # is lowered once per scan, each hit cell then raised once (glassmap/grid_jit.py).
         step = 0.7 * g.resolution
-        margins = hit_margins(angles, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
+        margins = hit_margins(c, s, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
         lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
         counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
         lo = self.log_odds

@@ -80,11 +80,12 @@ def test_beams_inside_a_continuous_surface_get_the_surface_margin_and_its_edges_
     ranges[80:] += 1.5  # a range jump: the wall steps back 1.5 m from beam 80 on
     ranges[120] = np.nan  # a beam without a return: the beams 3 either side lose one of their neighbours
     hit = np.isfinite(ranges)
-    m = hit_margins(angles, ranges, hit, edge=0.2, surface=0.1)
+    c, s = np.cos(angles), np.sin(angles)
+    m = hit_margins(c, s, ranges, hit, edge=0.2, surface=0.1)
     edge = np.flatnonzero(m == 0.2)
     assert set(edge) == {0, 1, 2, 77, 78, 79, 80, 81, 82, 117, 123, 157, 158, 159}
     assert np.all(np.delete(m, edge) == 0.1)
-    assert np.all(hit_margins(angles, ranges, hit, edge=0.2, surface=0.2) == 0.2)
+    assert np.all(hit_margins(c, s, ranges, hit, edge=0.2, surface=0.2) == 0.2)
 
 
 def test_no_return_clears_only_when_configured_and_nan_is_ignored():

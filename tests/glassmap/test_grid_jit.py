@@ -24,7 +24,7 @@ def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30
     if callable(protect):
         protect = protect()
     step = 0.7 * g.resolution
-    margins = hit_margins(angles, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
+    margins = hit_margins(c, s, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
     lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
     counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
     lo = occ.log_odds
