@@ -59,6 +59,7 @@ def test_serial_laser_and_tcp_base():
     ("[mapping]\nwindow = 4\n", "mapping.window must be 3 or 5"),
     ("[mapping]\nregistration_sigma = \"world\"\n", "mapping.registration_sigma must be map or anchor"),
     ("[mapping]\nglass_scans = \"every\"\n", "mapping.glass_scans must be keys or all"),
+    ("[mapping]\nsurface_margin = -0.1\n", "mapping.hit_margin and surface_margin must be >= 0 m"),
     ("[pipeline]\nnice = -30\n", r"pipeline.nice must be in -20 .. 19, got -30"),
     ("[laser\n", r"robot.toml: .*line 1"),
 ])
