@@ -230,7 +230,9 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
                  frontend_sigma=nan if front is None else front[1], final_error=nan if final is None else final[0],
                  final_sigma=nan if final is None else final[1],
                  stopped_lost=lost_stop, lost_holds=res.summary.lost_holds, silent_divergence=silent,
-                 closures=res.closures, false_closures=g.false if g is not None else 0, graph_lag=res.graph_lag)]
+                 closures=res.closures, false_closures=g.false if g is not None else 0,
+                 worst_closure_xy=g.worst_xy if g is not None else nan,
+                 worst_closure_yaw=g.worst_yaw if g is not None else nan, graph_lag=res.graph_lag)]
 
 
 _RUNNERS = {"classifier": _classifier, "map": _map, "experiment": _experiment, "pose": _pose, "demo": _demo}
