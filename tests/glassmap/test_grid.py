@@ -67,8 +67,8 @@ def test_the_hit_margin_keeps_the_near_side_of_a_wall_seen_obliquely():
     # clearing up to one cell short of each end point, the beams that measured long erase cells holding the end
     # points of the beams that measured short (the wall's near side); the margin keeps them
     walls = (1.0, 1.01, 1.02, 1.03, 1.04)  # the wall at several offsets within a cell
-    lost_one_cell = np.mean([1 - _share_of_wall_points_in_occupied_cells(OccupancyParams(hit_margin=0.05), y)
-                             for y in walls])
+    one_cell = OccupancyParams(hit_margin=0.05, surface_margin=0.05)
+    lost_one_cell = np.mean([1 - _share_of_wall_points_in_occupied_cells(one_cell, y) for y in walls])
     lost_default = np.mean([1 - _share_of_wall_points_in_occupied_cells(OccupancyParams(), y) for y in walls])
     assert lost_one_cell > 0.03
     assert lost_default < 0.5 * lost_one_cell
