@@ -5,7 +5,8 @@ serves the ARIA protocol on a pseudo-terminal; the emulated Hokuyo serves SCIP o
 the simulated world from the robot's true laser pose. The runtime connects to both exactly as to hardware,
 drives the robot along the world's route with velocity commands computed from its *estimated* pose, builds
 the maps online, records everything to MCAP, and at the end the glass confidence map is scored against the
-world's blueprint. ``speed`` > 1 runs the emulators (and so the whole demo) faster than real time; the
+world's blueprint (with ``mapping.loop_closure``, every accepted loop closure is scored against the true
+poses too and listed in ``closures.csv``). ``speed`` > 1 runs the emulators (and so the whole demo) faster than real time; the
 processing queue then holds ``speed`` times as many scans (``pipeline.queue_size`` is a number of scans at
 the laser's real rate, 40 Hz: 4 scans = 100 ms), so that it spans the same time as on the robot.
 """
@@ -29,6 +30,8 @@ from runtime.evaluate import (GraphEvaluation, MapEvaluation, TrajectoryEvaluati
                               evaluate_trajectory)
 
 log = logging.getLogger(__name__)
+
+CLOSURES_FILE = "closures.csv"  # with loop closure: every accepted closure scored against the truth
 
 
 @dataclass
@@ -243,7 +246,9 @@ async def run_demo(opts: DemoOptions) -> DemoResult:
         if graph is not None:
             snap = graph.snapshot()
             keys = np.array([truth_keys.get(float(t), np.nan) for t in snap.stamps])
-            graph_eval = evaluate_graph(keys, snap.poses, snap.accepted, truth)
+            graph_eval = evaluate_graph(keys, snap.poses, snap.accepted, truth, snap.stamps)
+            if graph_eval is not None:
+                graph_eval.write_csv(out / CLOSURES_FILE)
     return DemoResult(summary=summary, evaluation=evaluation, png=summary.exports.get("png", ""),
                       recording=cfg.output.record, true_final_pose=true_final, estimated_final_pose=est,
                       estimated_final_cov=est_cov, corrected_final=corrected,

@@ -20,7 +20,9 @@ scored with a one-cell tolerance. Both are printed; the strict one is the paper'
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -166,13 +168,19 @@ def evaluate_trajectory(estimates: np.ndarray, truth: np.ndarray) -> TrajectoryE
                                 final_true=t[-1, 1:].copy(), final_estimate=e[-1, 1:].copy())
 
 
+CLOSURE_COLUMNS = ["anchor", "node", "anchor_stamp", "node_stamp", "directions", "error_xy", "error_yaw", "false"]
+"""Columns of a closure row: its two key scans (graph nodes) and their stamps (s, host), the directions of
+pose space it constrains (3, or 2 in a corridor), its error against the truth in those directions (m, rad)
+and whether that makes it false (more than ``FALSE_CLOSURE_XY`` or ``FALSE_CLOSURE_YAW``)."""
+
+
 @dataclass(frozen=True)
 class GraphEvaluation:
     """The pose graph's result against the truth (runtime demo with loop closure): ate (m), the RMS position
     error of the optimised key-scan poses over the n key scans matched to a true pose; closures scored (both
     nodes matched), false: those more than ``FALSE_CLOSURE_XY`` / ``FALSE_CLOSURE_YAW`` off the truth in the
     directions they constrain (:meth:`glassmap.pose.backend.Closure.error`), worst_xy / worst_yaw (m, rad):
-    the largest closure errors."""
+    the largest closure errors; rows: one per closure scored (:data:`CLOSURE_COLUMNS`)."""
 
     n: int
     ate: float
@@ -180,6 +188,14 @@ class GraphEvaluation:
     false: int
     worst_xy: float
     worst_yaw: float
+    rows: list[dict] = field(default_factory=list)
+
+    def write_csv(self, path: str | Path) -> None:
+        """Every closure scored, one row each (:data:`CLOSURE_COLUMNS`), to a CSV file."""
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=CLOSURE_COLUMNS)
+            w.writeheader()
+            w.writerows(self.rows)
 
     def describe(self) -> str:
         out = f"optimised key-scan trajectory: ATE (RMS) {100 * self.ate:.1f} cm over {self.n} key scans; "
@@ -189,10 +205,12 @@ class GraphEvaluation:
                       f"{100 * self.worst_xy:.1f} cm, {np.degrees(self.worst_yaw):.2f} deg where they constrain)")
 
 
-def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndarray) -> GraphEvaluation | None:
+def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndarray,
+                   stamps: np.ndarray | None = None) -> GraphEvaluation | None:
     """Score the optimised key-scan ``poses`` (N, 3) and the ``accepted`` closures (their nodes index the
     key scans) against ``truth`` (m, 4: stamp key, x, y, yaw, as in :func:`evaluate_trajectory`); ``keys``
-    (N,) are the key scans' stamp keys in the same unit (NaN where unknown). None if no key scan matches."""
+    (N,) are the key scans' stamp keys in the same unit (NaN where unknown), ``stamps`` (N,) their stamps
+    (s, for the closure rows; NaN if not given). None if no key scan matches."""
     from glassmap.pose.evaluate import FALSE_CLOSURE_XY, FALSE_CLOSURE_YAW
 
     hit, at = _truth_at(keys, truth)
@@ -200,9 +218,13 @@ def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndar
         return None
     at = at[:, 1:]
     d = np.hypot(*(np.asarray(poses)[hit, :2] - at[hit, :2]).T)
-    errs = np.array([c.error(at[c.anchor], at[c.node]) for c in accepted if hit[c.anchor] and hit[c.node]])
-    errs = errs.reshape(-1, 2)
-    false = int(np.sum((errs[:, 0] > FALSE_CLOSURE_XY) | (errs[:, 1] > FALSE_CLOSURE_YAW)))
+    stamps = np.full(len(hit), np.nan) if stamps is None else np.asarray(stamps, np.float64)
+    scored = [c for c in accepted if hit[c.anchor] and hit[c.node]]
+    errs = np.array([c.error(at[c.anchor], at[c.node]) for c in scored]).reshape(-1, 2)
+    bad = (errs[:, 0] > FALSE_CLOSURE_XY) | (errs[:, 1] > FALSE_CLOSURE_YAW)
+    rows = [dict(anchor=c.anchor, node=c.node, anchor_stamp=float(stamps[c.anchor]), node_stamp=float(stamps[c.node]),
+                 directions=int(round(np.trace(c.proj))), error_xy=float(e[0]), error_yaw=float(e[1]), false=bool(b))
+            for c, e, b in zip(scored, errs, bad)]
     worst = errs.max(axis=0) if len(errs) else np.zeros(2)
-    return GraphEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), closures=len(errs), false=false,
-                           worst_xy=float(worst[0]), worst_yaw=float(worst[1]))
+    return GraphEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), closures=len(errs),
+                           false=int(bad.sum()), worst_xy=float(worst[0]), worst_yaw=float(worst[1]), rows=rows)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 from types import SimpleNamespace
 
 import numpy as np
@@ -84,7 +85,7 @@ def test_trajectory_is_scored_at_the_same_scans():
     assert evaluate_trajectory(est[1:2], truth) is None
 
 
-def test_pose_graph_is_scored_at_its_key_scans_and_closures_against_the_truth():
+def test_pose_graph_is_scored_at_its_key_scans_and_closures_against_the_truth(tmp_path):
     from glassmap.pose.backend import Closure
     from runtime.evaluate import evaluate_graph
 
@@ -102,5 +103,15 @@ def test_pose_graph_is_scored_at_its_key_scans_and_closures_against_the_truth():
     assert ev.closures == 3 and ev.false == 1  # the 2 deg one
     assert ev.worst_xy == pytest.approx(0.01) and ev.worst_yaw == pytest.approx(np.radians(2.0))
     assert "1 false (worst 1.0 cm, 2.00 deg" in ev.describe()
+    assert [(r["anchor"], r["node"], r["directions"], r["false"]) for r in ev.rows] == [
+        (0, 1, 3, False), (0, 3, 2, False), (1, 3, 3, True)]
+    assert np.isnan(ev.rows[0]["node_stamp"])  # no stamps given
+    stamped = evaluate_graph(keys, poses, (wrong,), truth, stamps=np.array([0.0, 0.5, 1.0, 1.5]))
+    path = tmp_path / "closures.csv"
+    stamped.write_csv(path)
+    with open(path) as f:
+        (row,) = list(csv.DictReader(f))
+    assert (row["anchor_stamp"], row["node_stamp"], row["false"]) == ("0.5", "1.5", "True")
+    assert float(row["error_yaw"]) == pytest.approx(np.radians(2.0))
     assert "no loop closure" in evaluate_graph(keys, poses, (), truth).describe()
     assert evaluate_graph(np.full(4, np.nan), poses, (), truth) is None
