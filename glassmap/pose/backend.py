@@ -5,8 +5,9 @@ builds; the back end takes each key scan it hands over (``PoseEstimator.last_key
 
 * appends a node to the :class:`~glassmap.pose.graph.PoseGraph` with a *sequential* edge from the previous
   key scan: the front end's relative pose, with the covariance of :mod:`glassmap.pose.chain` (odometry, fused
-  with the matches where both key scans were matched, scaled by ``chain_scale``), so that without closures
-  the graph's marginal is the front end's own reported covariance;
+  with the matches where both key scans were matched, scaled by ``chain_scale``, plus the jump where the front
+  end relocalised after a lost track), so that without closures the graph's marginal is the front end's own
+  reported covariance;
 * files it into the open :class:`~glassmap.pose.submaps.Submap`;
 * every few key scans asks the :class:`~glassmap.pose.loop_closure.LoopCloser` for closures against older
   submaps and adds the accepted ones as *loop* edges (iSAM2 re-solves). Before that, each closure is compared
@@ -127,6 +128,7 @@ class GraphBackEnd:
         self.travel: list[float] = []  # path length (m) at each node, from the front-end poses
         self.closures: list[Closure] = []
         self.seq_cov: list[np.ndarray] = []  # sequential edges' covariances before chain_scale
+        self.jump_cov: list[np.ndarray] = []  # and what a relocalisation adds to them (ChainConfig.jump_covariance)
         self.unscaled: list[bool] = []  # per sequential edge: chain_scale taken off by a closure
         self.partial: list[bool] = []  # per sequential edge: a key scan at either end matched in < 3 directions
         self.chain_unscaled = 0  # closures that took chain_scale off the edges between their nodes
@@ -149,6 +151,7 @@ class GraphBackEnd:
             prev = self.keys[-1]
             rel = relative(prev.pose, key.pose)
             self.seq_cov.append(self.config.chain.step_covariance(prev, key))
+            self.jump_cov.append(self.config.chain.jump_covariance(prev, key))
             self.unscaled.append(False)
             self.partial.append(partial_step(prev, key))
             node = self.graph.add_node(rel, self._scaled(len(self.seq_cov) - 1))
@@ -171,8 +174,8 @@ class GraphBackEnd:
     def _scaled(self, i: int) -> np.ndarray:
         """Covariance (3, 3) of sequential edge i (node i -> i + 1) as the graph holds it."""
         if self.unscaled[i]:
-            return self.seq_cov[i]
-        return self.config.chain.scaled(self.seq_cov[i], self.partial[i])
+            return self.seq_cov[i] + self.jump_cov[i]
+        return self.config.chain.scaled(self.seq_cov[i], self.partial[i]) + self.jump_cov[i]
 
     def chain_covariance(self, a: int, b: int) -> np.ndarray:
         """Covariance (3, 3) of the front end's relative pose of node b in node a's frame (a < b) that the

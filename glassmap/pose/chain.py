@@ -68,6 +68,14 @@ class ChainConfig:
             cov = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(m))
         return cov
 
+    @staticmethod
+    def jump_covariance(prev: KeyScan, key: KeyScan) -> np.ndarray:
+        """Covariance (3, 3, in ``prev``'s frame) a step gains where ``key`` ended a lost track: the outer product
+        of its jump (``KeyScan.jump``); zero on every other step. Not scaled by ``chain_scale``."""
+        if key.jump is None:
+            return np.zeros((3, 3))
+        return relative_covariance(prev.pose, key.pose, np.zeros((3, 3)), np.outer(key.jump, key.jump))
+
     def scaled(self, cov: np.ndarray, partial: bool) -> np.ndarray:
         """A step's covariance ``cov`` with ``chain_scale`` applied; ``partial``: a key scan at either end was
         matched in fewer than three directions (x keeps its noise)."""
@@ -105,7 +113,8 @@ class DriftChain:
         """Compound the step to a new key scan."""
         if self.key is not None:
             cfg = self.config
-            step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
+            step = (cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
+                    + cfg.jump_covariance(self.key, key))
             self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
         else:
             self.start = np.asarray(key.pose[:2], dtype=np.float64).copy()

@@ -252,9 +252,11 @@ class PoseEstimator:
         self.stats = EstimatorStats()
         # the streak of gated matches: (offset from the prediction, covariance, directions, filter covariance)
         self._gated: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=config.lost_after)
-        # while the streak is judged ambiguous: the second moment (map frame; m, rad) of its matches' offsets
-        # from the prediction, added to the reported covariance only (it does not open the gate)
-        self._alias_spread: np.ndarray | None = None
+        # while matches are rejected by the gate (until a streak is judged lost) and while a streak is judged
+        # ambiguous: the second moment (map frame; m, rad) of its matches' offsets from the prediction, added to
+        # the reported covariance only (it does not open the gate)
+        self._gated_spread: np.ndarray | None = None
+        self._jump: np.ndarray | None = None  # the correction of the match that ended a lost track (relocalised)
         self._last_odom: np.ndarray | None = None
         self._last_stamp: float | None = None
         self._since_rebuild = 0
@@ -409,7 +411,8 @@ class PoseEstimator:
             seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.scan_relative_covariance().copy(),
             odom=np.zeros(3) if self._last_odom is None else compose(self._last_odom, self._ext),
             fused_dims=st.last_fused_dims, written=bool(write), angles=np.asarray(angles), ranges=ranges,
-            range_max=float(scan.geometry.range_max), mount=self.mount)
+            range_max=float(scan.geometry.range_max), mount=self.mount, jump=self._jump)
+        self._jump = None
         self.chain.add(self.last_key_scan)
         self._since_rebuild += 1
         st.scans += 1
@@ -443,6 +446,10 @@ class PoseEstimator:
                 if st.status != "lost":
                     self._judge_gated_streak(seq, d2, gate, res, pts, w)
             else:
+                # until the streak is judged: reported as uncertain by the offsets of its matches, in case the
+                # prediction is what is wrong (stamps out of step while turning)
+                ys, _, hs, _ = zip(*self._gated)
+                self._gated_spread = _offsets_second_moment(ys, hs, self.ekf.cov)
                 if st.status == "ok":
                     st.status_reason = f"scan match rejected by the gate (squared distance {d2:.0f} > {gate:.1f})"
                     log.info("scan %d: %s", seq, st.status_reason)
@@ -456,16 +463,20 @@ class PoseEstimator:
             # is then this one, not the consider covariance, until the next scan)
             scan = PoseEKF(self.scan_pose(), self._carried(self.ekf.cov) + self.extrapolation_covariance())
             scan.correct(res.pose, res.covariance, 0.0, hm)
+        before = self.ekf.pose.copy()
         self.ekf.correct(z, r, rho, hm)
         if np.any(self._ext):
             self._scan_post = (scan.pose.copy(), scan.cov.copy())
         st.matched += 1
         st.last_fused_dims = h.shape[0]
         if st.status == "lost":
-            log.warning("pose track recovered at scan %d: a match agrees with the prediction again", seq)
+            self._jump = self.ekf.pose - before
+            self._jump[2] = float(wrap_angle(self._jump[2]))
+            log.warning("pose track recovered at scan %d: a match agrees with the prediction again (relocalised "
+                        "by %.2f m, %.1f deg)", seq, float(np.hypot(*self._jump[:2])), np.degrees(self._jump[2]))
         st.status, st.status_reason, st.gated_streak = "ok", "", 0
         self._gated.clear()
-        self._alias_spread = None
+        self._gated_spread = None
         return True
 
     def _lead_over_prediction(self, res: MatchResult, pts: np.ndarray, w: np.ndarray) -> float:
@@ -518,9 +529,9 @@ class PoseEstimator:
                                     f"follows odometry")
                 log.warning("scan %d: %s", seq, st.status_reason)
             st.status = "degraded"
-            self._alias_spread = _offsets_second_moment(ys, hs, p_now)
+            self._gated_spread = _offsets_second_moment(ys, hs, p_now)
             return
-        self._alias_spread = None
+        self._gated_spread = None
         self.ekf.cov = self.ekf.cov + np.outer(offset, offset)
         self.ekf.actual_cov = self.ekf.actual_cov + np.outer(offset, offset)
         st.lost_events += 1
@@ -674,15 +685,16 @@ class PoseEstimator:
         extrapolation limit while the base may still move (odometry late; the motion extrapolated up to the
         limit is covered by the chain's odometry noise since the key scan) and, while the track is lost, the
         filter's covariance (widened by the matches' disagreement; the key scans came from the poses it lost)
-        or, while its matches are judged ambiguous, the spread of their offsets from the prediction."""
+        or, while scan matches are rejected by the gate (the track degraded, or its streak judged ambiguous), the
+        second moment of their offsets from the prediction: in case they are right and the prediction is not."""
         _, v, w, held = self._extrapolated
         cov = np.zeros((3, 3))
         if held > 0:
             cov = rotated(self.ekf.pose, self.config.motion.extrapolation_covariance(v, 0.0, w, held))
         if self.stats.status == "lost":
             cov = cov + self.scan_relative_covariance()
-        elif self._alias_spread is not None:
-            cov = cov + self._alias_spread
+        elif self._gated_spread is not None:
+            cov = cov + self._gated_spread
         return cov
 
     def scan_relative_covariance(self) -> np.ndarray:

@@ -20,7 +20,9 @@ class KeyScan:
     angles (n,) rad, ranges (n,) m: the scan as matched (laser frame, after any de-skew); range_max (m);
     mount (3,): laser pose in the base frame. scan / p_glass / incidence: the raw scan, its p(glass) per beam
     (NaN: not classified) and incidence angle per beam (rad, NaN: none), attached by the runtime's glass path
-    so the glass map can be rebuilt at corrected poses (None: occupancy only)."""
+    so the glass map can be rebuilt at corrected poses (None: occupancy only). jump (3,): on the key scan whose
+    match ended a lost track, the correction that match applied (map frame; m, m, rad: the relocalisation),
+    None on every other."""
 
     seq: int
     stamp: float
@@ -36,3 +38,4 @@ class KeyScan:
     scan: Scan | None = None
     p_glass: np.ndarray | None = None
     incidence: np.ndarray | None = None
+    jump: np.ndarray | None = None

@@ -8,25 +8,29 @@ from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.motion import compose
 
 
-def _key(i: int, pose: np.ndarray, fused_dims: int = 3) -> KeyScan:
+JUMP = np.array([0.3, -0.2, np.radians(3.0)])  # a relocalisation (map frame)
+
+
+def _key(i: int, pose: np.ndarray, fused_dims: int = 3, jump: np.ndarray | None = None) -> KeyScan:
     return KeyScan(seq=i, stamp=0.1 * i, pose=np.asarray(pose, dtype=np.float64), cov=np.diag([1e-5, 4e-5, 1e-6]),
                    odom=np.zeros(3), fused_dims=fused_dims, written=True, angles=np.zeros(1), ranges=np.ones(1),
-                   range_max=30.0, mount=np.zeros(3))
+                   range_max=30.0, mount=np.zeros(3), jump=jump)
 
 
-def _keys(n: int) -> list[KeyScan]:
+def _keys(n: int, jump_at: int | None = None) -> list[KeyScan]:
     """Key scans 5 cm apart on an arc (1 deg per step); every 7th matched in two directions only, every 11th
-    placed by odometry alone."""
+    placed by odometry alone; the one ``jump_at`` ended a lost track by a jump of JUMP."""
     poses = [np.zeros(3)]
     for _ in range(n - 1):
         poses.append(compose(poses[-1], np.array([0.05, 0.0, np.radians(1.0)])))
-    return [_key(i, p, 0 if i % 11 == 10 else 2 if i % 7 == 6 else 3) for i, p in enumerate(poses)]
+    return [_key(i, p, 0 if i % 11 == 10 else 2 if i % 7 == 6 else 3, JUMP if i == jump_at else None)
+            for i, p in enumerate(poses)]
 
 
 def test_the_chain_is_the_pose_graphs_marginal_without_closures():
     chain = DriftChain(ChainConfig(), np.eye(3) * 1e-6)  # the graph's prior on its first node
     backend = GraphBackEnd(BackEndConfig(loop_closure=False))
-    for key in _keys(60):
+    for key in _keys(60, jump_at=25):
         chain.add(key)
         backend.add(key)
         np.testing.assert_allclose(chain.cov, backend.latest().cov, rtol=1e-6, atol=1e-13)
@@ -73,3 +77,14 @@ def test_the_maps_scale_error_grows_with_the_displacement_from_the_start():
         extra = scaled.covariance_at(pose, stamp) - plain.covariance_at(pose, stamp)
         np.testing.assert_allclose(extra[:2, :2], np.outer(d, d), atol=1e-15)
         assert np.all(extra[2] == 0.0) and np.all(extra[:, 2] == 0.0)
+
+
+def test_a_relocalisation_adds_its_jump_to_the_chain_unscaled():
+    """The step to a key scan that ended a lost track carries the outer product of its jump (not shrunk by
+    chain_scale): the chain's covariance after it exceeds the one without the jump by exactly that, carried
+    along the later steps."""
+    plain, jumped = DriftChain(ChainConfig(), np.eye(3) * 1e-6), DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    for a, b in zip(_keys(26), _keys(26, jump_at=25)):
+        plain.add(a)
+        jumped.add(b)
+    np.testing.assert_allclose(jumped.cov - plain.cov, np.outer(JUMP, JUMP), atol=1e-12)

@@ -258,6 +258,37 @@ def test_after_a_rejected_match_the_search_spans_the_widest_heading_window_until
     assert abs(np.degrees(e.pose[2] - t[2])) < 0.3
 
 
+def test_rejected_matches_widen_the_reported_covariance_until_one_is_fused():
+    """Odometry turns 5 deg that the robot does not: the matches that say so are rejected by the gate, and may
+    be right. Until one is fused again (or the streak is judged), the reported covariance holds their offsets
+    from the prediction, so the estimate's heading error stays inside it."""
+    est = PoseEstimator(EstimatorConfig(lost_after=5))
+    out = _drive_in_box(est, 60, kick_at=30, kick=np.array([0.0, 0.0, np.radians(5.0)]))
+    degraded = [(e, t) for e, t in out if e.status == "degraded"]
+    assert degraded
+    for e, t in degraded:
+        assert abs(float(wrap_angle(e.pose[2] - t[2]))) <= 3.0 * np.sqrt(e.covariance[2, 2])
+        assert np.sqrt(e.covariance[2, 2]) > np.radians(3.0)
+    assert np.degrees(np.sqrt(out[29][0].covariance[2, 2])) < 0.5  # before the kick
+
+
+def test_a_relocalisation_stays_in_the_reported_covariance():
+    """Odometry turns 5 deg that the robot does not; the track is lost and relocalised by the scan matches.
+    The key scan that ended the lost track carries the jump, and the reported covariance keeps it: whether the
+    pose before the jump or after it was right, the matches that judged it do not say."""
+    est = PoseEstimator(EstimatorConfig(lost_after=3))
+    keys, add = [], est.chain.add
+    est.chain.add = lambda key: (keys.append(key), add(key))
+    out = _drive_in_box(est, 70, kick_at=30, kick=np.array([0.0, 0.0, np.radians(5.0)]))
+    jumps = [k.jump for k in keys if k.jump is not None]
+    assert est.stats.lost_events == 1 and len(jumps) == 1
+    assert abs(np.degrees(jumps[0][2])) == pytest.approx(5.0, abs=1.0)
+    e, t = out[-1]
+    assert e.status == "ok" and abs(np.degrees(e.pose[2] - t[2])) < 0.3
+    assert np.degrees(np.sqrt(out[25][0].covariance[2, 2])) < 0.5  # before the kick
+    assert np.sqrt(e.covariance[2, 2]) >= 0.9 * abs(jumps[0][2])
+
+
 def test_the_chi_square_points_match_scipy():
     from scipy.stats import chi2
 
