@@ -315,6 +315,7 @@ class Runtime:
         self.latest = r
         if self.driver is not None and self.stop is not None:
             self._hold_while_lost(r)
+            self._stop_if_too_uncertain(r)
         self.latency.add(r)
         if self.sink is not None:
             self.sink.result(r)
@@ -347,6 +348,24 @@ class Runtime:
             st = self.processor.estimator.stats
             waited = f"; not recovered within {self.config.base.lost_hold:g} s held at rest" if hold > 0 else ""
             self.stop.set(f"pose estimate lost at t={self._lost_since:.1f} s: {st.status_reason}{waited}")
+
+    def _stop_if_too_uncertain(self, r: ScanResult) -> None:
+        """Never drive on an estimate too uncertain to follow a route: once the reported position standard
+        deviation (widest direction; the corrected estimate's with loop closure) exceeds ``base.max_sigma``, the
+        run stops and says why (relocalisations add their jumps to it, docs/pose.md)."""
+        limit = self.config.base.max_sigma
+        est = r.corrected_pose if r.corrected_pose is not None else r.estimate
+        if limit <= 0 or est is None or self.stop.is_set():
+            return
+        (a, b), (_, c) = est.covariance[0][:2], est.covariance[1][:2]
+        sigma = math.sqrt(max(0.5 * (a + c) + math.hypot(0.5 * (a - c), b), 0.0))  # the widest direction's
+        if sigma > limit:
+            st = self.processor.estimator.stats
+            self.stop.set(f"pose estimate too uncertain at t={float(r.scan.stamp):.1f} s: position standard deviation "
+                          f"{sigma:.2f} m > base.max_sigma {limit:g} m (track {st.status}, lost {st.lost_events} "
+                          f"times); the robot is stopped")
+            if self.base is not None and (self._hold_task is None or self._hold_task.done()):
+                self._hold_task = asyncio.get_running_loop().create_task(self._command_rest())
 
     async def _command_rest(self) -> None:
         """Zero velocity now (the driver's next command would come up to one period later)."""

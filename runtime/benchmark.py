@@ -216,8 +216,9 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
     # the estimate the runtime reports at the end: the pose graph's correction of the front end's, if it ran
     front = final_error(res)
     final = final_error(res, corrected=True) or front
-    lost_stop = res.summary.stop_reason.startswith("pose estimate lost")
-    silent = nan if final is None else float(final[1] > 3.0 and not lost_stop)
+    # the runtime stopped the robot on its pose (a track lost past base.lost_hold, or base.max_sigma): said, not silent
+    pose_stop = res.summary.stop_reason.startswith("pose estimate ")
+    silent = nan if final is None else float(final[1] > 3.0 and not pose_stop)
     g = res.graph
     cev = res.corrected_evaluation
     return [dict(error=ev.error if ev else nan, glass_recall=ev.glass_recall if ev else nan,
@@ -229,7 +230,7 @@ def _demo(task: Task, cfg: BenchmarkConfig) -> list[dict]:
                  ate=res.trajectory.ate if res.trajectory is not None else nan,
                  frontend_sigma=nan if front is None else front[1], final_error=nan if final is None else final[0],
                  final_sigma=nan if final is None else final[1],
-                 stopped_lost=lost_stop, lost_holds=res.summary.lost_holds, silent_divergence=silent,
+                 stopped_on_pose=pose_stop, lost_holds=res.summary.lost_holds, silent_divergence=silent,
                  closures=res.closures, false_closures=g.false if g is not None else 0,
                  worst_closure_xy=g.worst_xy if g is not None else nan,
                  worst_closure_yaw=g.worst_yaw if g is not None else nan, graph_lag=res.graph_lag)]

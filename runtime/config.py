@@ -71,6 +71,9 @@ class BaseConfig:
     lost_hold: float = setting(5.0, "while the pose track is lost, hold the robot at rest up to this long (s; "
                                "the emulated robot's with --speed) for the estimator to relocalise against the "
                                "map, then drive on; if it does not, stop the run and say why (0: stop at once)")
+    max_sigma: float = setting(1.0, "stop a driven run when the reported position standard deviation (m, its "
+                               "widest direction; the pose graph's corrected estimate with loop closure) "
+                               "exceeds this: no route can be followed on it (0: never)")
 
     def url(self) -> str:
         if self.port.startswith("/"):
@@ -213,8 +216,9 @@ class RuntimeConfig:
                               f"{m.surface_margin}")
         if m.keyframe_distance < 0 or m.keyframe_angle_deg < 0 or m.keyframe_max_scans < 0:
             raise ConfigError("mapping.keyframe_distance (m), keyframe_angle_deg and keyframe_max_scans must be >= 0")
-        if self.base.lost_hold < 0:
-            raise ConfigError(f"base.lost_hold must be >= 0 s, got {self.base.lost_hold}")
+        if self.base.lost_hold < 0 or self.base.max_sigma < 0:
+            raise ConfigError(f"base.lost_hold (s) and base.max_sigma (m) must be >= 0, got {self.base.lost_hold} "
+                              f"and {self.base.max_sigma}")
         if self.pipeline.queue_size < 1:
             raise ConfigError("pipeline.queue_size must be >= 1")
         if not -20 <= self.pipeline.nice <= 19:

@@ -84,7 +84,7 @@ def test_demo_part_reports_the_final_error_in_sigma_with_the_pose_graph(tmp_path
     (row,) = _demo(Task("tiny", str(world), "file", "demo", 0), cfg)
     assert row["closures"] == 0 and row["false_closures"] == 0  # a 3 m route closes no loop
     assert row["worst_closure_xy"] == 0.0 and row["worst_closure_yaw"] == 0.0  # (m, rad) scored: none
-    assert 0.0 <= row["final_sigma"] < 3.0 and row["silent_divergence"] == 0.0 and not row["stopped_lost"]
+    assert 0.0 <= row["final_sigma"] < 3.0 and row["silent_divergence"] == 0.0 and not row["stopped_on_pose"]
     # no closure: the pose is the front end's (its sigma is the graph's, from the chain of key scans)
     assert row["final_error"] == pytest.approx(row["final_pose_error"], abs=1e-9)
     # the maps the pose graph rebuilt at its final poses are scored too (issue 17): without a closure they are

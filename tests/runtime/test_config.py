@@ -60,6 +60,7 @@ def test_serial_laser_and_tcp_base():
     ("[mapping]\nregistration_sigma = \"world\"\n", "mapping.registration_sigma must be map or anchor"),
     ("[mapping]\nglass_scans = \"every\"\n", "mapping.glass_scans must be keys or all"),
     ("[mapping]\nsurface_margin = -0.1\n", "mapping.hit_margin and surface_margin must be >= 0 m"),
+    ("[base]\nmax_sigma = -1\n", r"base.lost_hold \(s\) and base.max_sigma \(m\) must be >= 0"),
     ("[pipeline]\nnice = -30\n", r"pipeline.nice must be in -20 .. 19, got -30"),
     ("[laser\n", r"robot.toml: .*line 1"),
 ])

@@ -1,5 +1,6 @@
 """A driven robot is held at rest while the pose estimator reports its track lost; it drives on when the track
-recovers, and the run stops, with the reason, when it does not recover within ``base.lost_hold``."""
+recovers, and the run stops, with the reason, when it does not recover within ``base.lost_hold`` or when the
+reported position uncertainty exceeds ``base.max_sigma``."""
 
 import asyncio
 from types import SimpleNamespace
@@ -14,10 +15,21 @@ from runtime.pipeline import ScanResult
 from runtime.shutdown import StopRequest
 
 
-def _result(status: str, stamp: float = 12.5) -> ScanResult:
+def _result(status: str, stamp: float = 12.5, sigma: float = 0.01, corrected_sigma: float | None = None
+            ) -> ScanResult:
+    """A result at ``stamp`` whose estimate has position standard deviation ``sigma`` (m) along its widest
+    direction (and, if given, a pose-graph-corrected estimate of ``corrected_sigma``)."""
     scan = Scan(stamp=stamp, ranges=np.ones(LaserGeometry().n_beams), intensities=None, geometry=LaserGeometry())
-    return ScanResult(scan=scan, estimate=PoseEstimate(stamp, 0.0, 0.0, 0.0, np.eye(3) * 1e-4, status=status),
-                      laser_pose=np.zeros(3), p_glass=None)
+
+    def cov(s):  # widest along the diagonal x = y, 1 cm across
+        r = np.array([[1.0, -1.0], [1.0, 1.0]]) / np.sqrt(2.0)
+        c = np.diag([1e-4, 1e-4, 1e-4])
+        c[:2, :2] = r @ np.diag([s ** 2, 1e-4]) @ r.T
+        return c
+
+    corrected = None if corrected_sigma is None else PoseEstimate(stamp, 0.0, 0.0, 0.0, cov(corrected_sigma))
+    return ScanResult(scan=scan, estimate=PoseEstimate(stamp, 0.0, 0.0, 0.0, cov(sigma), status=status),
+                      laser_pose=np.zeros(3), p_glass=None, corrected_pose=corrected)
 
 
 class _Base:
@@ -30,7 +42,8 @@ class _Base:
         self.commands.append((v, omega))
 
 
-def _runtime(driven: bool, lost_hold: float = 5.0, time_scale: float = 1.0) -> tuple[Runtime, StopRequest]:
+def _runtime(driven: bool, lost_hold: float = 5.0, time_scale: float = 1.0, max_sigma: float = 1.0
+             ) -> tuple[Runtime, StopRequest]:
     stats = EstimatorStats(status="lost", status_reason="5 consecutive scan matches disagree")
     processor = SimpleNamespace(estimator=SimpleNamespace(stats=stats))
 
@@ -38,7 +51,7 @@ def _runtime(driven: bool, lost_hold: float = 5.0, time_scale: float = 1.0) -> t
         return None
 
     stop = StopRequest()
-    rt = Runtime(RuntimeConfig(base=BaseConfig(lost_hold=lost_hold)), processor=processor,
+    rt = Runtime(RuntimeConfig(base=BaseConfig(lost_hold=lost_hold, max_sigma=max_sigma)), processor=processor,
                  pioneer_options={"time_scale": time_scale}, driver=driver if driven else None, stop=stop)
     rt.base = _Base()
     return rt, stop
@@ -105,5 +118,39 @@ def test_without_a_driver_a_lost_track_does_not_end_the_run():
         rt._on_result(_result("lost", 11.0))
         rt._on_result(_result("lost", 30.0))
         assert not stop.is_set()
+
+    asyncio.run(go())
+
+
+def test_a_driven_run_stops_when_the_position_is_too_uncertain_to_follow_a_route():
+    async def go():
+        rt, stop = _runtime(driven=True, max_sigma=1.0)
+        rt._on_result(_result("ok", 10.0, sigma=0.9))
+        assert not stop.is_set()
+        rt._on_result(_result("ok", 10.1, sigma=1.1))  # 1.1 m along the diagonal: x and y alone are 0.78 m
+        await asyncio.sleep(0)
+        assert stop.is_set() and "too uncertain" in stop.reason and "1.10 m > base.max_sigma 1 m" in stop.reason
+        assert rt.base.commands == [(0.0, 0.0)]
+
+    asyncio.run(go())
+
+
+def test_with_loop_closure_the_corrected_estimate_is_the_one_judged():
+    async def go():
+        rt, stop = _runtime(driven=True, max_sigma=1.0)
+        rt._on_result(_result("ok", 10.0, sigma=2.0, corrected_sigma=0.2))  # the graph's closures narrowed it
+        assert not stop.is_set()
+        rt._on_result(_result("ok", 10.1, sigma=0.2, corrected_sigma=1.5))
+        assert stop.is_set()
+
+    asyncio.run(go())
+
+
+def test_max_sigma_0_never_stops_and_an_undriven_run_is_not_stopped():
+    async def go():
+        for driven, limit in ((True, 0.0), (False, 1.0)):
+            rt, stop = _runtime(driven=driven, max_sigma=limit)
+            rt._on_result(_result("ok", 10.0, sigma=5.0))
+            assert not stop.is_set()
 
     asyncio.run(go())
