@@ -71,10 +71,14 @@ class ChainConfig:
     @staticmethod
     def jump_covariance(prev: KeyScan, key: KeyScan) -> np.ndarray:
         """Covariance (3, 3, in ``prev``'s frame) a step gains where ``key`` ended a lost track: the outer product
-        of its jump (``KeyScan.jump``); zero on every other step. Not scaled by ``chain_scale``."""
+        of its jump's translation (``KeyScan.jump``); zero on every other step. Not scaled by ``chain_scale``.
+        The heading is left out: every later match measures it against the map's walls, and a wrong heading
+        would be rejected again, while a translation to an alias (a door frame further along a corridor) is
+        consistent with the map there and never contradicted."""
         if key.jump is None:
             return np.zeros((3, 3))
-        return relative_covariance(prev.pose, key.pose, np.zeros((3, 3)), np.outer(key.jump, key.jump))
+        shift = np.array([key.jump[0], key.jump[1], 0.0])
+        return relative_covariance(prev.pose, key.pose, np.zeros((3, 3)), np.outer(shift, shift))
 
     def scaled(self, cov: np.ndarray, partial: bool) -> np.ndarray:
         """A step's covariance ``cov`` with ``chain_scale`` applied; ``partial``: a key scan at either end was
