@@ -6,9 +6,10 @@ the simulated world from the robot's true laser pose. The runtime connects to bo
 drives the robot along the world's route with velocity commands computed from its *estimated* pose, builds
 the maps online, records everything to MCAP, and at the end the glass confidence map is scored against the
 world's blueprint (with ``mapping.loop_closure``, every accepted loop closure is scored against the true
-poses too and listed in ``closures.csv``). ``speed`` > 1 runs the emulators (and so the whole demo) faster than real time; the
-processing queue then holds ``speed`` times as many scans (``pipeline.queue_size`` is a number of scans at
-the laser's real rate, 40 Hz: 4 scans = 100 ms), so that it spans the same time as on the robot.
+poses too and listed in ``closures.csv``). ``speed`` > 1 runs the emulators (and so the whole demo) faster
+than real time; the processing queue then holds ``speed`` times as many scans (``pipeline.queue_size`` is a
+number of scans at the laser's real rate, 40 Hz: 4 scans = 100 ms), so that it spans the same time as on the
+robot.
 """
 
 from __future__ import annotations
