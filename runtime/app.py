@@ -357,8 +357,7 @@ class Runtime:
         est = r.corrected_pose if r.corrected_pose is not None else r.estimate
         if limit <= 0 or est is None or self.stop.is_set():
             return
-        (a, b), (_, c) = est.covariance[0][:2], est.covariance[1][:2]
-        sigma = math.sqrt(max(0.5 * (a + c) + math.hypot(0.5 * (a - c), b), 0.0))  # the widest direction's
+        sigma = est.sigma_xy
         if sigma > limit:
             st = self.processor.estimator.stats
             self.stop.set(f"pose estimate too uncertain at t={float(r.scan.stamp):.1f} s: position standard deviation "

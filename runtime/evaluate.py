@@ -184,11 +184,23 @@ class GraphEvaluation:
 
     n: int
     ate: float
-    closures: int
-    false: int
-    worst_xy: float
-    worst_yaw: float
     rows: list[dict] = field(default_factory=list)
+
+    @property
+    def closures(self) -> int:
+        return len(self.rows)
+
+    @property
+    def false(self) -> int:
+        return sum(r["false"] for r in self.rows)
+
+    @property
+    def worst_xy(self) -> float:
+        return max((r["error_xy"] for r in self.rows), default=0.0)
+
+    @property
+    def worst_yaw(self) -> float:
+        return max((r["error_yaw"] for r in self.rows), default=0.0)
 
     def write_csv(self, path: str | Path) -> None:
         """Every closure scored, one row each (:data:`CLOSURE_COLUMNS`), to a CSV file."""
@@ -225,6 +237,4 @@ def evaluate_graph(keys: np.ndarray, poses: np.ndarray, accepted, truth: np.ndar
     rows = [dict(anchor=c.anchor, node=c.node, anchor_stamp=float(stamps[c.anchor]), node_stamp=float(stamps[c.node]),
                  directions=int(round(np.trace(c.proj))), error_xy=float(e[0]), error_yaw=float(e[1]), false=bool(b))
             for c, e, b in zip(scored, errs, bad)]
-    worst = errs.max(axis=0) if len(errs) else np.zeros(2)
-    return GraphEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), closures=len(errs),
-                           false=int(bad.sum()), worst_xy=float(worst[0]), worst_yaw=float(worst[1]), rows=rows)
+    return GraphEvaluation(n=int(hit.sum()), ate=float(np.sqrt(np.mean(d ** 2))), rows=rows)
