@@ -49,13 +49,19 @@ class ChainConfig:
     scan); x keeps its scale 1 where a key scan at either end was matched in fewer than three directions;
     scale_sigma: standard deviation of the map's scale error (relative), reported by :class:`DriftChain` only:
     the matches' forward bias, carried from key scan to key scan through the map, places a pose off by about
-    scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30")."""
+    scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30").
+    revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan matched in all three
+    directions with at least ``revisit_share`` of its matched points on cells first placed by key scans it
+    reached along a path longer than their straight-line distance plus ``revisit_gap`` (the route came back onto
+    older map) is placed against those cells, not only by the step from the key scan before it."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
     chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
     scale_sigma: float = 0.0008
+    revisit_gap: float = 20.0
+    revisit_share: float = 0.5
 
     def step_covariance(self, prev: KeyScan, key: KeyScan) -> np.ndarray:
         """Covariance (3, 3) of the step from key scan ``prev`` to ``key`` (in ``prev``'s frame), before
@@ -102,27 +108,93 @@ def partial_step(prev: KeyScan, key: KeyScan) -> bool:
     return min(key.fused_dims, prev.fused_dims) < 3
 
 
+def psd_min(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The covariance (3, 3) that is in every direction the smaller of ``a`` (positive definite) and ``b``
+    (positive semi-definite): both diagonalised together, the smaller variance kept along each common axis."""
+    lo = np.linalg.cholesky(a)
+    inv = np.linalg.inv(lo)
+    lam, u = np.linalg.eigh(inv @ b @ inv.T)
+    m = lo @ u
+    out = (m * np.minimum(lam, 1.0)) @ m.T
+    return 0.5 * (out + out.T)
+
+
 class DriftChain:
     """The covariance (map frame, x, y, yaw) of the front end's pose compounded along its key scans from the
     start: a sequential step per key scan (:meth:`ChainConfig.step_covariance`, scaled), and from the newest key
-    scan to the current pose the motion since it (:meth:`ChainConfig.carried`)."""
+    scan to the current pose the motion since it (:meth:`ChainConfig.carried`).
+
+    Where the route comes back onto older map, a key scan's match places it against cells that earlier key
+    scans placed (``KeyScan.anchors``, their indices in this chain); its error is then theirs carried to its
+    pose plus its own error relative to the map (``KeyScan.cov``). Of that and the step from the key scan
+    before it, the smaller is kept in each direction (:func:`psd_min`; ``ChainConfig.revisit_gap``). The
+    averaged anchors' covariance bounds the error of a match on several of them from above. What relocalisations
+    added (``KeyScan.jump``) is kept: a jump to an alias is consistent with the older map there."""
 
     def __init__(self, config: ChainConfig, initial_cov: np.ndarray) -> None:
         self.config = config
         self.key: KeyScan | None = None  # the newest key scan
         self.cov = np.asarray(initial_cov, dtype=np.float64).copy()  # its covariance (before it: the start's)
         self.start: np.ndarray | None = None  # the first key scan's position (m, map frame)
+        self._poses: list[np.ndarray] = []  # per key scan added: pose (3,), covariance (3, 3), path length (m)
+        self._covs: list[np.ndarray] = []
+        self._path: list[float] = []
+        self._jumps = np.zeros((3, 3))  # the relocalisations' translations, summed (map frame)
+        self.revisits = 0  # key scans placed against older map
+
+    def __len__(self) -> int:
+        """Key scans added: the index the next one gets."""
+        return len(self._poses)
 
     def add(self, key: KeyScan) -> None:
         """Compound the step to a new key scan."""
+        path = 0.0
         if self.key is not None:
             cfg = self.config
-            step = (cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
-                    + cfg.jump_covariance(self.key, key))
+            jump = cfg.jump_covariance(self.key, key)
+            step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key)) + jump
             self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
+            if key.jump is not None:
+                self._jumps = self._jumps + np.outer(*(2 * [np.array([key.jump[0], key.jump[1], 0.0])]))
+            path = self._path[-1] + float(np.hypot(*(np.asarray(key.pose[:2]) - self.key.pose[:2])))
+            revisit = self._revisit_covariance(key, path)
+            if revisit is not None:
+                try:
+                    self.cov = psd_min(self.cov - self._jumps, revisit) + self._jumps
+                    self.revisits += 1
+                except np.linalg.LinAlgError:  # the chain's part not positive definite: keep the step's
+                    pass
         else:
             self.start = np.asarray(key.pose[:2], dtype=np.float64).copy()
         self.key = key
+        self._poses.append(np.asarray(key.pose, dtype=np.float64))
+        self._covs.append(self.cov)
+        self._path.append(path)
+
+    def _revisit_covariance(self, key: KeyScan, path: float) -> np.ndarray | None:
+        """The covariance of ``key`` placed against the older map its match landed on, or None when it did
+        not come back onto older map (see the class)."""
+        cfg = self.config
+        if cfg.revisit_gap <= 0 or key.anchors is None or key.fused_dims < 3 or key.jump is not None:
+            return None
+        a = np.asarray(key.anchors, dtype=np.int64)
+        if a.size == 0:
+            return None
+        owners, counts = np.unique(a, return_counts=True)
+        poses = np.array([self._poses[i] for i in owners])
+        d = np.asarray(key.pose[:2], dtype=np.float64) - poses[:, :2]
+        old = np.array(self._path)[owners] + np.hypot(d[:, 0], d[:, 1]) + cfg.revisit_gap < path
+        if counts[old].sum() < cfg.revisit_share * a.size:
+            return None
+        # each anchor's covariance carried to this pose (the map it placed, seen from here), weighted by points
+        w = counts[old] / counts[old].sum()
+        j = np.zeros((int(old.sum()), 3, 3))
+        j[:, 0, 0] = j[:, 1, 1] = j[:, 2, 2] = 1.0
+        j[:, 0, 2] = -d[old, 1]
+        j[:, 1, 2] = d[old, 0]
+        covs = np.array([self._covs[i] for i in owners[old]])
+        mean = np.einsum("k,kij,kjl,kml->im", w, j, covs, j)
+        return mean + np.asarray(key.cov, dtype=np.float64)
 
     def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:
         """Covariance (3, 3) of the front end's pose ``pose`` (base, map frame) at ``stamp`` (s)."""

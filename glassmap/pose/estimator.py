@@ -79,6 +79,7 @@ def _psd(m: np.ndarray) -> np.ndarray:
 
 
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
+KEY_LAYER = "pose_hit_key"  # per cell: the sum over its end points (``pose_hit_n``) of their key scans' chain indices
 MAP_UNCERTAINTY = ("chain", "off")  # EstimatorConfig.map_uncertainty
 
 
@@ -280,6 +281,8 @@ class PoseEstimator:
             for name in HIT_LAYERS:
                 if name not in self.occupancy.grid.layer_names:
                     self.occupancy.grid.add_layer(name, 0.0, np.float32)
+            if KEY_LAYER not in self.occupancy.grid.layer_names:
+                self.occupancy.grid.add_layer(KEY_LAYER, 0.0, np.float32)
         # optional callable -> (H, W) bool mask of cells the occupancy update must not clear (e.g. the glass
         # mapper's ``protect_mask``); called after the grid has grown to contain the scan
         self.protect_mask_fn = None
@@ -382,6 +385,7 @@ class PoseEstimator:
                                                       cfg.alias_min_shift))
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)
+        anchors = self._anchors(pts) if accepted and st.last_fused_dims == 3 else None
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -411,7 +415,7 @@ class PoseEstimator:
             seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.scan_relative_covariance().copy(),
             odom=np.zeros(3) if self._last_odom is None else compose(self._last_odom, self._ext),
             fused_dims=st.last_fused_dims, written=bool(write), angles=np.asarray(angles), ranges=ranges,
-            range_max=float(scan.geometry.range_max), mount=self.mount, jump=self._jump)
+            range_max=float(scan.geometry.range_max), mount=self.mount, jump=self._jump, anchors=anchors)
         self._jump = None
         self.chain.add(self.last_key_scan)
         self._since_rebuild += 1
@@ -631,8 +635,9 @@ class PoseEstimator:
 
     def _store_hits(self, angles: np.ndarray, ranges: np.ndarray, range_max: float,
                     end: np.ndarray | None = None) -> None:
-        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls;
-        ``end``: the end points (:meth:`_end_points`) if already computed."""
+        """Accumulate this scan's end points per cell (offset from the cell corner, m) for sub-cell walls, and
+        this key scan's chain index per end point (``KEY_LAYER``); ``end``: the end points (:meth:`_end_points`)
+        if already computed."""
         if end is None:
             end = self._end_points(angles, ranges, range_max)
         if not len(end):
@@ -640,6 +645,29 @@ class PoseEstimator:
         g = self.occupancy.grid
         sx, sy, n = (g[name] for name in HIT_LAYERS)
         add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
+        if KEY_LAYER in g.layer_names:
+            ix, iy = self._cells(end)
+            np.add.at(g[KEY_LAYER], (iy, ix), np.float32(len(self.chain)))
+
+    def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Column and row indices of the grid cells of the map-frame points ``xy`` (n, 2) inside the grid."""
+        g = self.occupancy.grid
+        c = g.world_to_cell(xy)
+        c = c[g.in_bounds(c)]
+        return c[:, 0], c[:, 1]
+
+    def _anchors(self, pts: np.ndarray) -> np.ndarray | None:
+        """``KeyScan.anchors`` of the matched points ``pts`` (n, 2, base frame) at the scan's pose."""
+        if KEY_LAYER not in self.occupancy.grid.layer_names:
+            return None
+        pose = self.scan_pose()
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        xy = np.stack([pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1)
+        ix, iy = self._cells(xy)
+        g = self.occupancy.grid
+        n = g[HIT_LAYERS[2]][iy, ix]
+        on = n > 0
+        return np.floor(g[KEY_LAYER][iy[on], ix[on]] / n[on] + 0.5).astype(np.int32)
 
     # ------------------------------------------------------------------ outputs
     def scan_pose(self) -> np.ndarray:

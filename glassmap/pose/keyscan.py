@@ -22,7 +22,9 @@ class KeyScan:
     (NaN: not classified) and incidence angle per beam (rad, NaN: none), attached by the runtime's glass path
     so the glass map can be rebuilt at corrected poses (None: occupancy only). jump (3,): on the key scan whose
     match ended a lost track, the correction that match applied (map frame; m, m, rad: the relocalisation),
-    None on every other."""
+    None on every other. anchors (m,) int: for a key scan matched in all three directions, for each matched point
+    that landed on a cell earlier key scans placed end points in, the mean of their indices in the front end's
+    chain (:class:`~glassmap.pose.chain.DriftChain`), rounded; None otherwise."""
 
     seq: int
     stamp: float
@@ -39,3 +41,4 @@ class KeyScan:
     p_glass: np.ndarray | None = None
     incidence: np.ndarray | None = None
     jump: np.ndarray | None = None
+    anchors: np.ndarray | None = None

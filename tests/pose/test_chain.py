@@ -3,7 +3,9 @@
 import numpy as np
 
 from glassmap.pose.backend import BackEndConfig, GraphBackEnd
-from glassmap.pose.chain import ChainConfig, DriftChain
+from dataclasses import replace
+
+from glassmap.pose.chain import ChainConfig, DriftChain, psd_min
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.motion import compose
 
@@ -89,3 +91,64 @@ def test_a_relocalisation_adds_its_jump_to_the_chain_unscaled():
         jumped.add(b)
     shift = np.array([JUMP[0], JUMP[1], 0.0])
     np.testing.assert_allclose(jumped.cov - plain.cov, np.outer(shift, shift), atol=1e-12)
+
+
+def test_psd_min_keeps_the_smaller_variance_along_every_direction():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        ma, mb = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        a, b = ma @ ma.T + 1e-3 * np.eye(3), mb @ mb.T
+        m = psd_min(a, b)
+        assert np.linalg.eigvalsh(a - m).min() > -1e-9 and np.linalg.eigvalsh(b - m).min() > -1e-9
+        np.testing.assert_allclose(psd_min(a, 4.0 * a), a, atol=1e-12)  # b wider everywhere: a
+    np.testing.assert_allclose(psd_min(np.diag([4.0, 1.0, 1.0]), np.diag([1.0, 9.0, 1.0])), np.diag([1.0, 1.0, 1.0]))
+
+
+def _lap(n: int, laps: int) -> list[KeyScan]:
+    """Key scans 0.5 m apart around a square of side n / 4 * 0.5 m, ``laps`` times."""
+    side = n // 4
+    poses = [np.zeros(3)]
+    for i in range(1, n * laps):
+        turn = np.pi / 2 if i % side == 0 else 0.0
+        poses.append(compose(poses[-1], np.array([0.5, 0.0, turn])))
+    return [_key(i, p) for i, p in enumerate(poses)]
+
+
+def test_coming_back_onto_older_map_places_the_key_scan_against_it():
+    """A key scan whose matched points lie on cells placed by key scans a lap earlier is as uncertain as those
+    (carried to it) plus its own error relative to the map, not more: over three laps the chain stops growing
+    where each lap begins. Matched on recent cells only (exploring), it compounds its steps as before."""
+    n = 80  # one lap: 40 m
+    keys = _lap(n, 3)
+    plain, revisits = DriftChain(ChainConfig(), np.eye(3) * 1e-6), DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    covs_plain, covs = [], []
+    for k in keys:
+        plain.add(k)
+        # the points land on cells placed by the key scans at this place a lap before, if there was one
+        anchors = np.full(50, k.seq - n) if k.seq >= n else np.full(50, max(k.seq - 1, 0))
+        revisits.add(replace(k, anchors=anchors))
+        covs_plain.append(plain.cov)
+        covs.append(revisits.cov)
+    assert revisits.revisits == 2 * n
+    np.testing.assert_allclose(covs[:n], covs_plain[:n])  # the first lap: exploring, the steps compounded
+    for i in range(n, 3 * n):
+        before = covs[i - n]
+        assert np.linalg.eigvalsh(before + keys[i].cov - covs[i]).min() > -1e-12  # no wider than a lap before
+        assert np.linalg.eigvalsh(covs_plain[i] - covs[i]).min() > -1e-12  # nor than the steps compounded
+    assert np.trace(covs_plain[-1]) > 2.0 * np.trace(covs[-1])
+
+
+def test_a_revisit_needs_a_full_match_and_keeps_what_relocalisations_added():
+    n = 80
+    keys = _lap(n, 2)
+    shift = np.array([JUMP[0], JUMP[1], 0.0])
+    partial, jumped = DriftChain(ChainConfig(), np.eye(3) * 1e-6), DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    plain = DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    for k in keys:
+        anchors = np.full(50, k.seq - n) if k.seq >= n else None
+        plain.add(k)
+        partial.add(replace(k, anchors=anchors, fused_dims=2 if anchors is not None else 3))
+        jumped.add(replace(k, anchors=anchors, jump=JUMP if k.seq == 20 else None))
+    assert partial.revisits == 0  # matched in two directions only: the chain's steps
+    assert jumped.revisits == n
+    assert np.linalg.eigvalsh(jumped.cov - np.outer(shift, shift)).min() > -1e-12  # the jump stays in

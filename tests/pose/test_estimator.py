@@ -262,3 +262,40 @@ def test_grid_holds_scan_only_when_ensure_scan_extent_would_not_grow(no_return_r
         assert not (holds and grew)
         skipped += holds
     assert skipped > 5  # (with no_return_range > 0, only scans without an inf range can skip)
+
+
+def _laps(config: EstimatorConfig, laps: int) -> tuple[PoseEstimator, list[np.ndarray]]:
+    """Circles of 1 m radius in the room (6.3 m a lap, at 0.5 m/s), odometry 3 % long: the reported
+    covariance at the start of each lap."""
+    segs = room_with_corner()
+    mount = np.array([0.1, 0.0, 0.0])
+    start = np.array([-0.5, -0.5, 0.0])
+    est = PoseEstimator(replace(config, laser_mount=tuple(mount), initial_pose=tuple(start)))
+    rng = np.random.default_rng(5)
+    dt, v, w = 0.025, 0.5, 0.5
+    per_lap = int(round(2 * np.pi / w / dt))
+    true, odom, at_start = start.copy(), np.zeros(3), []
+    for k in range(laps * per_lap + 1):
+        if k > 0:
+            true = compose(true, np.array([v * dt, 0.0, w * dt]))
+            odom = compose(odom, np.array([1.03 * v * dt, 0.0, w * dt]))
+        est.predict(Odometry(stamp=k * dt, x=odom[0], y=odom[1], yaw=odom[2], v=v, omega=w))
+        e = est.update(make_scan(segs, compose(true, mount), stamp=k * dt, noise=0.01, rng=rng))
+        if k % per_lap == 0:
+            at_start.append(e.covariance)
+    return est, at_start
+
+
+def test_coming_back_onto_its_own_map_the_reported_covariance_stops_growing():
+    """Lap after lap the key scans match the cells the first laps placed: with revisits (ChainConfig.revisit_gap,
+    here 3 m) the reported covariance at the start of a lap stops growing; compounding the steps alone it grows
+    with every lap."""
+    cfg = EstimatorConfig()
+    est, revisit = _laps(replace(cfg, chain=replace(cfg.chain, revisit_gap=3.0, scale_sigma=0.0)), 4)
+    _, plain = _laps(replace(cfg, chain=replace(cfg.chain, revisit_gap=0.0, scale_sigma=0.0)), 4)
+    assert est.chain.revisits > 0.5 * est.stats.keyframes
+    assert est.last_key_scan.anchors is not None and est.last_key_scan.anchors.size > 50
+    trace = [np.trace(c[:2, :2]) for c in revisit]
+    grown = [np.trace(c[:2, :2]) for c in plain]
+    assert grown[-1] > 1.5 * grown[2] and np.all(np.diff(grown) > 0)
+    assert trace[-1] < 1.2 * trace[2] and trace[-1] < 0.5 * grown[-1]
