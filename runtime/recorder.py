@@ -363,11 +363,17 @@ def iter_mcap_raw(path: str | Path) -> Iterator[McapRecord]:
 def read_mcap(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, str, int, object]]:
     """Decoded messages ``(topic, msgtype, log_ns, msg)`` of a glassmap recording (complete or cut short).
 
-    Types are decoded with the glassmap type store (ROS 2 Humble + foxglove + glassmap_msgs)."""
+    Types are decoded with the glassmap type store (ROS 2 Humble + foxglove + glassmap_msgs). With ``topics``,
+    only their messages are read out of the file (:mod:`runtime.mcap_walk`: chunks without any are not
+    decompressed)."""
     ts = typestore()
-    for r in iter_mcap_raw(path):
-        if topics is not None and r.topic not in topics:
-            continue
+    if topics is None:
+        records = iter_mcap_raw(path)
+    else:
+        from runtime.mcap_walk import iter_channel_messages
+
+        records = iter_channel_messages(path, lambda topic, _schema: topic in topics)
+    for r in records:
         if r.msgtype not in ts.types:
             continue
         yield r.topic, r.msgtype, r.log_ns, ts.deserialize_cdr(r.data, r.msgtype)
