@@ -136,27 +136,28 @@ class DriftChain:
         self.key: KeyScan | None = None  # the newest key scan
         self.cov = np.asarray(initial_cov, dtype=np.float64).copy()  # its covariance (before it: the start's)
         self.start: np.ndarray | None = None  # the first key scan's position (m, map frame)
-        self._poses: list[np.ndarray] = []  # per key scan added: pose (3,), covariance (3, 3), path length (m)
-        self._covs: list[np.ndarray] = []
-        self._path: list[float] = []
+        # per key scan added, row by row: pose (3), covariance (9, row-major), path length from the first (m)
+        self._history = np.zeros((256, 13))
+        self._n = 0
         self._jumps = np.zeros((3, 3))  # the relocalisations' translations, summed (map frame)
         self.revisits = 0  # key scans placed against older map
 
     def __len__(self) -> int:
         """Key scans added: the index the next one gets."""
-        return len(self._poses)
+        return self._n
 
     def add(self, key: KeyScan) -> None:
         """Compound the step to a new key scan."""
         path = 0.0
         if self.key is not None:
             cfg = self.config
-            jump = cfg.jump_covariance(self.key, key)
-            step = cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key)) + jump
+            step = (cfg.scaled(cfg.step_covariance(self.key, key), partial_step(self.key, key))
+                    + cfg.jump_covariance(self.key, key))
             self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
-            if key.jump is not None:
-                self._jumps = self._jumps + np.outer(*(2 * [np.array([key.jump[0], key.jump[1], 0.0])]))
-            path = self._path[-1] + float(np.hypot(*(np.asarray(key.pose[:2]) - self.key.pose[:2])))
+            if key.jump is not None:  # (the step's jump term in the map frame)
+                shift = np.array([key.jump[0], key.jump[1], 0.0])
+                self._jumps = self._jumps + np.outer(shift, shift)
+            path = self._history[self._n - 1, 12] + float(np.hypot(*(np.asarray(key.pose[:2]) - self.key.pose[:2])))
             revisit = self._revisit_covariance(key, path)
             if revisit is not None:
                 try:
@@ -167,9 +168,10 @@ class DriftChain:
         else:
             self.start = np.asarray(key.pose[:2], dtype=np.float64).copy()
         self.key = key
-        self._poses.append(np.asarray(key.pose, dtype=np.float64))
-        self._covs.append(self.cov)
-        self._path.append(path)
+        if self._n == len(self._history):
+            self._history = np.concatenate([self._history, np.zeros_like(self._history)])
+        self._history[self._n] = np.concatenate([np.asarray(key.pose, dtype=np.float64), self.cov.ravel(), [path]])
+        self._n += 1
 
     def _revisit_covariance(self, key: KeyScan, path: float) -> np.ndarray | None:
         """The covariance of ``key`` placed against the older map its match landed on, or None when it did
@@ -178,12 +180,13 @@ class DriftChain:
         if cfg.revisit_gap <= 0 or key.anchors is None or key.fused_dims < 3 or key.jump is not None:
             return None
         a = np.asarray(key.anchors, dtype=np.int64)
+        a = a[(a >= 0) & (a < self._n)]
         if a.size == 0:
             return None
         owners, counts = np.unique(a, return_counts=True)
-        poses = np.array([self._poses[i] for i in owners])
-        d = np.asarray(key.pose[:2], dtype=np.float64) - poses[:, :2]
-        old = np.array(self._path)[owners] + np.hypot(d[:, 0], d[:, 1]) + cfg.revisit_gap < path
+        rows = self._history[owners]
+        d = np.asarray(key.pose[:2], dtype=np.float64) - rows[:, :2]
+        old = rows[:, 12] + np.hypot(d[:, 0], d[:, 1]) + cfg.revisit_gap < path
         if counts[old].sum() < cfg.revisit_share * a.size:
             return None
         # each anchor's covariance carried to this pose (the map it placed, seen from here), weighted by points
@@ -192,8 +195,8 @@ class DriftChain:
         j[:, 0, 0] = j[:, 1, 1] = j[:, 2, 2] = 1.0
         j[:, 0, 2] = -d[old, 1]
         j[:, 1, 2] = d[old, 0]
-        covs = np.array([self._covs[i] for i in owners[old]])
-        mean = np.einsum("k,kij,kjl,kml->im", w, j, covs, j)
+        covs = rows[old, 3:12].reshape(-1, 3, 3)
+        mean = np.tensordot(w, j @ covs @ j.transpose(0, 2, 1), axes=1)
         return mean + np.asarray(key.cov, dtype=np.float64)
 
     def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:
