@@ -51,9 +51,10 @@ class ChainConfig:
     the matches' forward bias, carried from key scan to key scan through the map, places a pose off by about
     scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30").
     revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan matched in all three
-    directions with at least ``revisit_share`` of its matched points on cells first placed by key scans it
-    reached along a path longer than their straight-line distance plus ``revisit_gap`` (the route came back onto
-    older map) is placed against those cells, not only by the step from the key scan before it."""
+    directions with at least ``revisit_share`` of its matched points on cells whose end points came (on average)
+    from a key scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (the
+    route came back onto older map) is placed against those cells, not only by the step from the key scan before
+    it."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
@@ -125,8 +126,9 @@ class DriftChain:
     scan to the current pose the motion since it (:meth:`ChainConfig.carried`).
 
     Where the route comes back onto older map, a key scan's match places it against cells that earlier key
-    scans placed (``KeyScan.anchors``, their indices in this chain); its error is then theirs carried to its
-    pose plus its own error relative to the map (``KeyScan.cov``). Of that and the step from the key scan
+    scans placed (``KeyScan.anchors``: per matched point, the mean index in this chain of the key scans whose end
+    points are in its cell); its error is then theirs carried to its pose plus its own error relative to the map
+    (``KeyScan.cov``). Of that and the step from the key scan
     before it, the smaller is kept in each direction (:func:`psd_min`; ``ChainConfig.revisit_gap``). The
     averaged anchors' covariance bounds the error of a match on several of them from above. What relocalisations
     added (``KeyScan.jump``) is kept: a jump to an alias is consistent with the older map there."""
@@ -157,7 +159,7 @@ class DriftChain:
             if key.jump is not None:  # (the step's jump term in the map frame)
                 shift = np.array([key.jump[0], key.jump[1], 0.0])
                 self._jumps = self._jumps + np.outer(shift, shift)
-            path = self._history[self._n - 1, 12] + float(np.hypot(*(np.asarray(key.pose[:2]) - self.key.pose[:2])))
+            path = self._history[self._n - 1, 12] + float(np.hypot(*(key.pose[:2] - self.key.pose[:2])))
             revisit = self._revisit_covariance(key, path)
             if revisit is not None:
                 try:
