@@ -84,8 +84,7 @@ class ChainConfig:
         consistent with the map there and never contradicted."""
         if key.jump is None:
             return np.zeros((3, 3))
-        shift = np.array([key.jump[0], key.jump[1], 0.0])
-        return relative_covariance(prev.pose, key.pose, np.zeros((3, 3)), np.outer(shift, shift))
+        return relative_covariance(prev.pose, key.pose, np.zeros((3, 3)), jump_translation(key))
 
     def scaled(self, cov: np.ndarray, partial: bool) -> np.ndarray:
         """A step's covariance ``cov`` with ``chain_scale`` applied; ``partial``: a key scan at either end was
@@ -102,6 +101,12 @@ class ChainConfig:
         odometry noise and ``min_sigma`` (an unscaled step to a pose that is not a key scan)."""
         q = self.motion.covariance(rel, max(dt, 0.0)) + np.diag(np.square(self.min_sigma))
         return compose_covariance(node, rel, cov, q)
+
+
+def jump_translation(key: KeyScan) -> np.ndarray:
+    """Outer product (3, 3, map frame) of the translation of ``key``'s relocalisation jump (zero heading)."""
+    shift = np.array([key.jump[0], key.jump[1], 0.0])
+    return np.outer(shift, shift)
 
 
 def partial_step(prev: KeyScan, key: KeyScan) -> bool:
@@ -157,8 +162,7 @@ class DriftChain:
                     + cfg.jump_covariance(self.key, key))
             self.cov = compose_covariance(self.key.pose, relative(self.key.pose, key.pose), self.cov, step)
             if key.jump is not None:  # (the step's jump term in the map frame)
-                shift = np.array([key.jump[0], key.jump[1], 0.0])
-                self._jumps = self._jumps + np.outer(shift, shift)
+                self._jumps = self._jumps + jump_translation(key)
             path = self._history[self._n - 1, 12] + float(np.hypot(*(key.pose[:2] - self.key.pose[:2])))
             revisit = self._revisit_covariance(key, path)
             if revisit is not None:

@@ -38,7 +38,8 @@ from glassmap.pose.filter_jit import carried, rotated
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import (CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions,
                                    select_points, slid_to_prior)
-from glassmap.pose.motion import MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, relative
+from glassmap.pose.motion import (MotionNoise, OdometryBuffer, compose, compose_jacobians, deskew, points_to_map,
+                                  relative)
 from glassmap.types import Odometry, PoseEstimate, Scan, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -281,8 +282,8 @@ class PoseEstimator:
             for name in HIT_LAYERS:
                 if name not in self.occupancy.grid.layer_names:
                     self.occupancy.grid.add_layer(name, 0.0, np.float32)
-            if KEY_LAYER not in self.occupancy.grid.layer_names:
-                self.occupancy.grid.add_layer(KEY_LAYER, 0.0, np.float32)
+            if config.chain.revisit_gap > 0 and KEY_LAYER not in self.occupancy.grid.layer_names:
+                self.occupancy.grid.add_layer(KEY_LAYER, 0.0, np.float32)  # the chain's revisits (anchors)
         # optional callable -> (H, W) bool mask of cells the occupancy update must not clear (e.g. the glass
         # mapper's ``protect_mask``); called after the grid has grown to contain the scan
         self.protect_mask_fn = None
@@ -596,9 +597,8 @@ class PoseEstimator:
         likelihood field averages into one wall point (``FieldParams.pool``), so two matches using the same
         wall estimate count as overlapping; blocks are keyed by map-frame position, so a grown grid does not
         change them."""
-        c, s = np.cos(pose[2]), np.sin(pose[2])
         block = (2 * self.field.params.pool + 1) * self.occupancy.grid.resolution
-        keys = np.floor((pose[:2] + pts @ np.array([[c, s], [-s, c]])) / block)
+        keys = np.floor(points_to_map(pose, pts) / block)
         keys = np.unique(keys.astype(np.int64) @ np.array([1, 1 << 32], dtype=np.int64))
         prev, self._matched_keys = self._matched_keys, keys
         if prev is None or keys.size == 0:
@@ -660,10 +660,7 @@ class PoseEstimator:
         """``KeyScan.anchors`` of the matched points ``pts`` (n, 2, base frame) at the scan's pose."""
         if KEY_LAYER not in self.occupancy.grid.layer_names:
             return None
-        pose = self.scan_pose()
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        xy = np.stack([pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1)
-        ix, iy = self._cells(xy)
+        ix, iy = self._cells(points_to_map(self.scan_pose(), pts))
         g = self.occupancy.grid
         n = g[HIT_LAYERS[2]][iy, ix]
         on = n > 0

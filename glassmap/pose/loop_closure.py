@@ -35,7 +35,7 @@ from glassmap.grid import OccupancyGrid
 from glassmap.pose.field import LikelihoodField
 from glassmap.pose.keyscan import KeyScan
 from glassmap.pose.matcher import CorrelativeMatcher, MatcherConfig, MatchResult, constrained_directions, select_points
-from glassmap.pose.motion import compose, compose_jacobians, relative
+from glassmap.pose.motion import compose, compose_jacobians, points_to_map, relative
 from glassmap.pose.submaps import Submap, SubmapStore
 from glassmap.types import wrap_angle
 
@@ -114,8 +114,7 @@ def agreement(fld: LikelihoodField, occ: OccupancyGrid, pts: np.ndarray, pose: n
     among those, the share within 2 sigma_hit of a wall.
     Points on unobserved cells say nothing (the old submaps saw less than the current scan does); a point
     on observed free space contradicts the match."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    xy = pose[:2] + pts @ np.array([[c, s], [-s, c]])
+    xy = points_to_map(pose, pts)
     cells = occ.grid.world_to_cell(xy)
     ok = occ.grid.in_bounds(cells)
     known = np.zeros(len(pts), dtype=bool)

@@ -41,6 +41,12 @@ def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(float(b[2]) - at)])
 
 
+def points_to_map(pose: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Points ``pts`` (n, 2) in the frame of ``pose`` (3,) as map-frame points (n, 2), m."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return pose[:2] + pts @ np.array([[c, s], [-s, c]])
+
+
 def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians (3x3, 3x3) of compose(a, b) with respect to a and to b."""
     at, bx, by = float(a[2]), float(b[0]), float(b[1])
