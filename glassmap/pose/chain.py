@@ -50,11 +50,11 @@ class ChainConfig:
     scale_sigma: standard deviation of the map's scale error (relative), reported by :class:`DriftChain` only:
     the matches' forward bias, carried from key scan to key scan through the map, places a pose off by about
     scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30").
-    revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan matched in all three
-    directions with at least ``revisit_share`` of its matched points on cells whose end points came (on average)
-    from a key scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (the
-    route came back onto older map) is placed against those cells, not only by the step from the key scan before
-    it."""
+    revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan whose match was fused
+    with at least ``revisit_share`` of its matched points on cells whose end points came (on average) from a key
+    scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (the route came
+    back onto older map) is placed against those cells in the directions its match constrained, not only by the
+    step from the key scan before it."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
@@ -103,6 +103,9 @@ class ChainConfig:
         return compose_covariance(node, rel, cov, q)
 
 
+_UNBOUNDED = 1e6  # variance (m^2, rad^2) along the directions a partial match left free: the chain's is kept there
+
+
 def jump_translation(key: KeyScan) -> np.ndarray:
     """Outer product (3, 3, map frame) of the translation of ``key``'s relocalisation jump (zero heading)."""
     shift = np.array([key.jump[0], key.jump[1], 0.0])
@@ -134,7 +137,9 @@ class DriftChain:
     scans placed (``KeyScan.anchors``: per matched point, the mean index in this chain of the key scans whose end
     points are in its cell); its error is then theirs carried to its pose plus its own error relative to the map
     (``KeyScan.cov``). Of that and the step from the key scan
-    before it, the smaller is kept in each direction (:func:`psd_min`; ``ChainConfig.revisit_gap``). The
+    before it, the smaller is kept in each direction (:func:`psd_min`; ``ChainConfig.revisit_gap``); a match
+    fused in fewer than three directions (``KeyScan.constrained``: along a corridor) bounds only those, the
+    steps' covariance stays along the others. The
     averaged anchors' covariance bounds the error of a match on several of them from above. What relocalisations
     added (``KeyScan.jump``) is kept: a jump to an alias is consistent with the older map there."""
 
@@ -183,7 +188,7 @@ class DriftChain:
         """The covariance of ``key`` placed against the older map its match landed on, or None when it did
         not come back onto older map (see the class)."""
         cfg = self.config
-        if cfg.revisit_gap <= 0 or key.anchors is None or key.fused_dims < 3 or key.jump is not None:
+        if cfg.revisit_gap <= 0 or key.anchors is None or key.jump is not None:
             return None
         a = np.asarray(key.anchors, dtype=np.int64)
         a = a[(a >= 0) & (a < self._n)]
@@ -203,7 +208,12 @@ class DriftChain:
         j[:, 1, 2] = d[old, 0]
         covs = rows[old, 3:12].reshape(-1, 3, 3)
         mean = np.tensordot(w, j @ covs @ j.transpose(0, 2, 1), axes=1)
-        return mean + np.asarray(key.cov, dtype=np.float64)
+        out = mean + np.asarray(key.cov, dtype=np.float64)
+        if key.constrained is not None:  # a partial match: the older map bounds only what it constrained
+            _, _, vt = np.linalg.svd(key.constrained)
+            free = vt[len(key.constrained):]
+            out = out + _UNBOUNDED * free.T @ free
+        return out
 
     def covariance_at(self, pose: np.ndarray, stamp: float) -> np.ndarray:
         """Covariance (3, 3) of the front end's pose ``pose`` (base, map frame) at ``stamp`` (s)."""

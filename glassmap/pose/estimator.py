@@ -259,6 +259,7 @@ class PoseEstimator:
         # the reported covariance only (it does not open the gate)
         self._gated_spread: np.ndarray | None = None
         self._jump: np.ndarray | None = None  # the correction of the match that ended a lost track (relocalised)
+        self._constrained = np.eye(3)  # the directions the last fused match constrained (rows, pose space)
         self._last_odom: np.ndarray | None = None
         self._last_stamp: float | None = None
         self._since_rebuild = 0
@@ -386,7 +387,7 @@ class PoseEstimator:
                                                       cfg.alias_min_shift))
         st.last_match = res
         accepted = self._fuse(res, pts if res is not None else None, w if res is not None else None, scan.seq)
-        anchors = self._anchors(pts) if accepted and st.last_fused_dims == 3 else None
+        anchors = self._anchors(pts) if accepted and st.last_fused_dims > 0 else None
         st.t_core = t_pred + (time.perf_counter() - t2)
 
         # ---- map update at the corrected pose
@@ -416,7 +417,8 @@ class PoseEstimator:
             seq=scan.seq, stamp=stamp, pose=self._key_pose.copy(), cov=self.scan_relative_covariance().copy(),
             odom=np.zeros(3) if self._last_odom is None else compose(self._last_odom, self._ext),
             fused_dims=st.last_fused_dims, written=bool(write), angles=np.asarray(angles), ranges=ranges,
-            range_max=float(scan.geometry.range_max), mount=self.mount, jump=self._jump, anchors=anchors)
+            range_max=float(scan.geometry.range_max), mount=self.mount, jump=self._jump, anchors=anchors,
+            constrained=self._constrained if 0 < st.last_fused_dims < 3 else None)
         self._jump = None
         self.chain.add(self.last_key_scan)
         self._since_rebuild += 1
@@ -474,6 +476,7 @@ class PoseEstimator:
             self._scan_post = (scan.pose.copy(), scan.cov.copy())
         st.matched += 1
         st.last_fused_dims = h.shape[0]
+        self._constrained = h
         if st.status == "lost":
             self._jump = self.ekf.pose - before
             self._jump[2] = float(wrap_angle(self._jump[2]))

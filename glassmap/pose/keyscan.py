@@ -22,9 +22,11 @@ class KeyScan:
     (NaN: not classified) and incidence angle per beam (rad, NaN: none), attached by the runtime's glass path
     so the glass map can be rebuilt at corrected poses (None: occupancy only). jump (3,): on the key scan whose
     match ended a lost track, the correction that match applied (map frame; m, m, rad: the relocalisation),
-    None on every other. anchors (m,) int: for a key scan matched in all three directions, for each matched point
-    that landed on a cell earlier key scans placed end points in, the mean of their indices in the front end's
-    chain (:class:`~glassmap.pose.chain.DriftChain`), rounded; None otherwise."""
+    None on every other. anchors (m,) int: for a key scan whose match was fused, for each matched point that
+    landed on a cell earlier key scans placed end points in, the mean of their indices in the front end's chain
+    (:class:`~glassmap.pose.chain.DriftChain`), rounded; None otherwise. constrained (k, 3), k = 1 or 2: for a
+    match fused in fewer than three directions, the directions of pose space (x, y, yaw; map frame) it
+    constrained (:func:`~glassmap.pose.matcher.constrained_directions`); None otherwise."""
 
     seq: int
     stamp: float
@@ -42,3 +44,4 @@ class KeyScan:
     incidence: np.ndarray | None = None
     jump: np.ndarray | None = None
     anchors: np.ndarray | None = None
+    constrained: np.ndarray | None = None

@@ -138,17 +138,26 @@ def test_coming_back_onto_older_map_places_the_key_scan_against_it():
     assert np.trace(covs_plain[-1]) > 2.0 * np.trace(covs[-1])
 
 
-def test_a_revisit_needs_a_full_match_and_keeps_what_relocalisations_added():
+def test_a_partial_match_on_older_map_bounds_only_the_directions_it_constrained():
+    """Matched in y and yaw only (a corridor along x, map frame) on cells placed a lap before: y and yaw are
+    placed against them, x keeps the compounded steps; a relocalisation's jump stays in."""
     n = 80
     keys = _lap(n, 2)
     shift = np.array([JUMP[0], JUMP[1], 0.0])
-    partial, jumped = DriftChain(ChainConfig(), np.eye(3) * 1e-6), DriftChain(ChainConfig(), np.eye(3) * 1e-6)
-    plain = DriftChain(ChainConfig(), np.eye(3) * 1e-6)
+    y_yaw = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    chains = {name: DriftChain(ChainConfig(), np.eye(3) * 1e-6) for name in ("steps", "partial", "full", "jumped")}
     for k in keys:
         anchors = np.full(50, k.seq - n) if k.seq >= n else None
-        plain.add(k)
-        partial.add(replace(k, anchors=anchors, fused_dims=2 if anchors is not None else 3))
-        jumped.add(replace(k, anchors=anchors, jump=JUMP if k.seq == 20 else None))
-    assert partial.revisits == 0  # matched in two directions only: the chain's steps
-    assert jumped.revisits == n
-    assert np.linalg.eigvalsh(jumped.cov - np.outer(shift, shift)).min() > -1e-12  # the jump stays in
+        dims = 3 if anchors is None else 2
+        chains["steps"].add(replace(k, fused_dims=dims))
+        chains["partial"].add(replace(k, anchors=anchors, fused_dims=dims,
+                                      constrained=None if anchors is None else y_yaw))
+        chains["full"].add(replace(k, anchors=anchors))
+        chains["jumped"].add(replace(k, anchors=anchors, jump=JUMP if k.seq == 20 else None))
+        steps, partial = chains["steps"].cov, chains["partial"].cov
+        assert np.linalg.eigvalsh(steps - partial).min() > -1e-12  # never wider than the steps compounded
+    assert chains["partial"].revisits == chains["full"].revisits == chains["jumped"].revisits == n
+    steps, partial, full = chains["steps"].cov, chains["partial"].cov, chains["full"].cov
+    assert partial[0, 0] > 0.9 * steps[0, 0] and partial[0, 0] > 2.0 * full[0, 0]  # x: the steps'
+    assert partial[1, 1] < 0.5 * steps[1, 1] and partial[2, 2] < 0.8 * steps[2, 2]  # y, yaw: the older map's
+    assert np.linalg.eigvalsh(chains["jumped"].cov - np.outer(shift, shift)).min() > -1e-12  # the jump stays in

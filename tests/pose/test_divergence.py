@@ -52,6 +52,21 @@ def test_a_straight_corridor_constrains_across_and_yaw_but_not_along():
     assert np.all(np.abs(h @ along) < 0.05 * np.linalg.norm(h, axis=1))  # nothing measured along x
 
 
+def test_a_key_scan_in_a_corridor_carries_the_directions_its_match_constrained():
+    """What the chain needs to place a corridor key scan against older map in those directions only."""
+    segs = corridor(200.0)
+    poses = [np.array([0.1 * i, 0.0, 0.0]) for i in range(20)]
+    est = PoseEstimator(EstimatorConfig(keyframe_distance=0.0, keyframe_angle=0.0, laser_mount=(0.0, 0.0, 0.0),
+                                        background_field=False), OccupancyGrid(MapGrid()))
+    for i, p in enumerate(poses):
+        est.predict(Odometry(stamp=0.1 * i, x=float(p[0]), y=float(p[1]), yaw=0.0, v=1.0, omega=0.0))
+        est.update(make_scan(segs, p, stamp=0.1 * i, noise=0.01, rng=np.random.default_rng(200 + i)))
+    key = est.last_key_scan
+    assert key.fused_dims == 2 and key.constrained.shape == (2, 3)
+    assert np.all(np.abs(key.constrained[:, 0]) < 0.05 * np.linalg.norm(key.constrained, axis=1))  # not along x
+    assert key.anchors is not None and key.anchors.size > 50 and key.anchors.max() < len(est.chain)
+
+
 def test_a_box_constrains_every_direction():
     segs = box(-2.0, -1.5, 3.0, 2.0)
     fld = _map_from(segs, [np.array([0.05 * i, -0.03 * i, 0.01 * i]) for i in range(3)])
