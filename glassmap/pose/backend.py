@@ -47,11 +47,15 @@ log = logging.getLogger(__name__)
 class BackEndConfig:
     """chain: the sequential edges' covariance (:class:`~glassmap.pose.chain.ChainConfig`); chain_gate: the
     chi-square probability beyond which a closure disagrees with the scaled chain (then unscaled between its
-    nodes); loop_closure: on/off and its settings; submaps."""
+    nodes); loop_closure: on/off and its settings; shared_closure_error: once the graph holds a closure, the
+    corrected estimate's covariance also carries the closures' floor (``closure.cov_floor``, the submap's own
+    error) once: the closures against one submap share that error, and the graph, which takes each closure as
+    independent, divides it by their number; submaps."""
 
     chain: ChainConfig = field(default_factory=ChainConfig)
     chain_gate: float = 0.99
     loop_closure: bool = True
+    shared_closure_error: bool = True
     closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
 
@@ -101,6 +105,7 @@ def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: 
     """A front-end estimate (base pose, map frame) moved by the pose graph's correction: the newest node's
     optimised pose composed with the front end's motion since that node. Its covariance is the node's
     marginal carried along that motion, plus the motion's own odometry noise (:meth:`ChainConfig.carried`), plus
+    the closures' shared error (``BackEndConfig.shared_closure_error``; x and y equal, so in any frame), plus
     ``off_chain`` turned with the correction: what the front end's covariance holds beyond its chain of key
     scans (``PoseEstimator.off_chain_covariance``: a pose held past the extrapolation limit, a lost track's
     widened covariance).
@@ -109,6 +114,8 @@ def corrected_estimate(est: PoseEstimate, corr: GraphCorrection | None, config: 
         return est
     node = compose(corr.correction, corr.front)
     cov = config.chain.carried(node, corr.cov, relative(corr.front, est.pose), est.stamp - corr.stamp)
+    if corr.closures and config.shared_closure_error:
+        cov = cov + np.diag(np.square(config.closure.cov_floor))
     if off_chain is not None:
         _, turn = compose_jacobians(corr.correction, est.pose)
         cov = cov + turn @ np.asarray(off_chain, dtype=np.float64) @ turn.T

@@ -101,7 +101,10 @@ def test_corrected_estimate_is_the_graph_node_moved_along_the_front_ends_motion_
     c = corrected_estimate(est, corr, cfg)  # at the node itself: its marginal and the floor, not the front end's
     np.testing.assert_allclose(c.pose, [1.0, 3.0, 0.1 + np.pi / 2], atol=1e-12)  # compose(correction, pose)
     floor = np.diag(np.square(cfg.chain.min_sigma))  # equal in x and y: the same in any frame
-    np.testing.assert_allclose(c.covariance, node_cov + floor, atol=1e-15)
+    shared = np.diag(np.square(cfg.closure.cov_floor))  # the closures' shared error: once, however many
+    np.testing.assert_allclose(c.covariance, node_cov + floor + shared, atol=1e-15)
+    before = corrected_estimate(est, replace(corr, closures=0), cfg)  # no closure yet: the chain's marginal
+    np.testing.assert_allclose(before.covariance, node_cov + floor, atol=1e-15)
     assert (c.stamp, c.status) == (3.0, "degraded")
     later = replace(est, stamp=4.0, x=2.0)  # 1 m on along the front end's x axis, 1 s later
     moved = corrected_estimate(later, corr, cfg)
