@@ -192,7 +192,9 @@ def _pose(task: Task, cfg: BenchmarkConfig) -> list[dict]:
         backend = BackEndConfig()
     m = evaluate_run(task.path, _route(load_world(task.path), cfg), task.seed, backend_config=backend)
     return [dict(ate_rmse=m.ate_rmse, ate_max=m.ate_max, final_drift=m.final_drift, nees_mean=m.nees_mean,
-                 inside_95=m.inside_95, yaw_rmse_deg=m.yaw_rmse_deg, odom_ate_rmse=m.odom_ate_rmse,
+                 inside_95=m.inside_95, nees_key_mean=m.nees_key_mean, nees_between_mean=m.nees_between_mean,
+                 yaw_nees_key_mean=m.yaw_nees_key_mean, yaw_nees_between_mean=m.yaw_nees_between_mean,
+                 yaw_rmse_deg=m.yaw_rmse_deg, odom_ate_rmse=m.odom_ate_rmse,
                  length_m=m.length_m, scans=m.scans, lc_ate_rmse=m.lc_ate_rmse, lc_nees_mean=m.lc_nees_mean,
                  lc_inside_95=m.lc_inside_95, lc_closures=m.lc_closures, lc_false_closures=m.lc_false_closures)]
 
@@ -309,6 +311,8 @@ METRICS: dict[str, tuple[str, str | None, str, bool]] = {
     "pose_final_drift": ("pose", None, "final_drift", False),
     "pose_nees_mean": ("pose", None, "nees_mean", False),
     "pose_inside_95": ("pose", None, "inside_95", True),
+    "pose_nees_key_mean": ("pose", None, "nees_key_mean", False),
+    "pose_nees_between_mean": ("pose", None, "nees_between_mean", False),
     "pose_lc_nees_mean": ("pose", None, "lc_nees_mean", False),
     "pose_lc_inside_95": ("pose", None, "lc_inside_95", True),
     "demo_error": ("demo", None, "error", False),
@@ -482,6 +486,8 @@ _LABELS = {
     "pose_final_drift": "pose final drift (m)",
     "pose_nees_mean": "pose mean NEES (ideal 3)",
     "pose_inside_95": "pose share inside the 95 % bound",
+    "pose_nees_key_mean": "pose mean NEES of the key scans (ideal 3)",
+    "pose_nees_between_mean": "pose mean NEES of the scans between key scans (ideal 3)",
     "pose_lc_nees_mean": "pose with the pose graph: corrected estimate's mean NEES",
     "pose_lc_inside_95": "pose with the pose graph: share inside the 95 % bound",
     "demo_error": "demo per-cell error",

@@ -39,7 +39,7 @@ def _config(sets: list[str]) -> EstimatorConfig:
 
 def _override(obj, path: list[str], value: str):
     """The dataclass ``obj`` with the field ``path`` (nested: ["matcher", "voxel"]) set to ``value`` (a number,
-    a boolean or a string)."""
+    a boolean, a string, or numbers separated by commas for a tuple)."""
     name = path[0]
     if name not in {f.name for f in fields(obj)}:
         raise SystemExit(f"no {type(obj).__name__} field {name!r}")
@@ -48,6 +48,8 @@ def _override(obj, path: list[str], value: str):
         return replace(obj, **{name: _override(cur, path[1:], value)})
     if isinstance(cur, bool):
         new = value.lower() in ("1", "true", "yes")
+    elif isinstance(cur, tuple):
+        new = tuple(float(v) for v in value.split(","))
     else:
         new = value if isinstance(cur, str) else type(cur)(float(value))
     return replace(obj, **{name: new})
@@ -103,7 +105,8 @@ def main() -> int:
     for r in rows:
         ok = NEES_BAND[0] <= r["nees_mean"] <= NEES_BAND[1] and r["inside_95"] >= INSIDE_MIN
         print(f"{r['world']:22s} seed {r['seed']:2d}  ATE {100 * r['ate_rmse']:5.2f} cm  NEES {r['nees_mean']:6.2f}  "
-              f"inside {100 * r['inside_95']:5.1f} %  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
+              f"inside {100 * r['inside_95']:5.1f} %  (key {r['nees_key_mean']:5.2f} between {r['nees_between_mean']:5.2f}; "
+              f"yaw {r['yaw_nees_key_mean']:4.2f} {r['yaw_nees_between_mean']:4.2f})  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
               f"{'in band' if ok else 'OUT'}", flush=True)
     _summary(rows)
     print(f"{time.perf_counter() - t0:.0f} s")
@@ -128,6 +131,11 @@ def _summary(rows: list[dict]) -> None:
           f"too narrow (NEES > {NEES_BAND[1]} or < {100 * INSIDE_MIN:.0f} % inside): "
           f"{((nees > NEES_BAND[1]) | (inside < INSIDE_MIN)).sum()}; "
           f"ATE mean {100 * np.mean([r['ate_rmse'] for r in rows]):.2f} cm")
+    key = np.array([r["nees_key_mean"] for r in rows])
+    between = np.array([r["nees_between_mean"] for r in rows])
+    print(f"mean NEES of the key scans: min {np.nanmin(key):.2f} median {np.nanmedian(key):.2f} max {np.nanmax(key):.2f}; "
+          f"of the scans between them: min {np.nanmin(between):.2f} median {np.nanmedian(between):.2f} "
+          f"max {np.nanmax(between):.2f}")
     worlds = sorted({r["world"] for r in rows})
     per = [(w, np.mean([r[nk] for r in rows if r["world"] == w]), np.mean([r[ik] for r in rows if r["world"] == w]))
            for w in worlds]

@@ -81,6 +81,12 @@ class RunMetrics:
     nees_mean: float
     nees_median: float
     inside_95: float
+    # the mean NEES split by scan kind: key scans (placed by a match; their covariance is the chain's) and
+    # the scans between them (the chain's plus odometry since the key scan); yaw alone (1 dof) for each
+    nees_key_mean: float
+    nees_between_mean: float
+    yaw_nees_key_mean: float
+    yaw_nees_between_mean: float
     sigma_xy_mean: float
     matched_share: float
     t_core_median_ms: float  # over all scans
@@ -283,6 +289,10 @@ def _nees(err: np.ndarray, covs: np.ndarray) -> np.ndarray:
     return np.einsum("si,si->s", err, np.linalg.solve(covs, err[:, :, None])[:, :, 0])
 
 
+def _mean_or_nan(a: np.ndarray) -> float:
+    return float(a.mean()) if a.size else float("nan")
+
+
 def metrics(traj: Trajectory, run) -> RunMetrics:
     """Trajectory and consistency metrics of one run."""
     e = traj.poses - traj.truth
@@ -291,6 +301,7 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
     eo = traj.odom - traj.truth
     do = np.hypot(eo[:, 0], eo[:, 1])
     nees = _nees(e, traj.covs)
+    yaw_nees = e[:, 2] ** 2 / traj.covs[:, 2, 2]
     steps = np.diff(traj.truth[:, :2], axis=0)
     sig = np.sqrt(np.linalg.eigvalsh(traj.covs[:, :2, :2])[:, 1])
     s = len(traj.stamps)
@@ -317,7 +328,10 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         yaw_rmse_deg=float(np.degrees(np.sqrt(np.mean(e[:, 2] ** 2)))),
         odom_ate_rmse=float(np.sqrt(np.mean(do ** 2))), odom_ate_max=float(do.max()), odom_final_drift=float(do[-1]),
         nees_mean=float(nees.mean()), nees_median=float(np.median(nees)),
-        inside_95=float(np.mean(nees <= CHI2_3DOF_95)), sigma_xy_mean=float(sig.mean()),
+        inside_95=float(np.mean(nees <= CHI2_3DOF_95)),
+        nees_key_mean=_mean_or_nan(nees[traj.key]), nees_between_mean=_mean_or_nan(nees[~traj.key]),
+        yaw_nees_key_mean=_mean_or_nan(yaw_nees[traj.key]), yaw_nees_between_mean=_mean_or_nan(yaw_nees[~traj.key]),
+        sigma_xy_mean=float(sig.mean()),
         matched_share=float(traj.matched / max(s, 1)),
         t_core_median_ms=float(np.median(traj.t_core) * 1e3),
         key_share=float(traj.key.mean()) if s else 0.0,

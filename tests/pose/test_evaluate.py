@@ -1,6 +1,7 @@
 """glassmap pose eval's stress options: odometry reaching the estimator late, scans dropped at random."""
 
 import numpy as np
+import pytest
 
 from glassmap.pose.evaluate import metrics, run_estimator
 from glassmap.sim.dataset import simulate_run
@@ -55,3 +56,17 @@ def test_a_run_with_the_pose_graph_reports_its_figures():
     assert traj.corrected_covs.shape == traj.covs.shape and m["lc_nees_mean"] > 0.0 and 0.0 < m["lc_inside_95"] <= 1.0
     xy = traj.corrected_covs[:, 0, 0] + traj.corrected_covs[:, 1, 1]
     assert xy[-1] > 2.0 * xy[len(xy) // 10]  # a random walk without a closure: it grows along the route
+
+
+def test_the_mean_nees_splits_into_key_scans_and_the_scans_between_them():
+    """The run's mean NEES is the key-share-weighted mean of its two parts; a key scan's error is measured
+    against the chain's covariance at it, the other scans' against that plus the odometry since it."""
+    run = simulate_run(load_world("office"), ROUTE, seed=3)
+    traj, _ = run_estimator(run)
+    m = metrics(traj, run)
+    k = traj.key.mean()
+    assert 0.0 < k < 1.0
+    assert m.nees_mean == pytest.approx(k * m.nees_key_mean + (1.0 - k) * m.nees_between_mean)
+    assert 0.0 < m.yaw_nees_key_mean < m.nees_key_mean and 0.0 < m.yaw_nees_between_mean < m.nees_between_mean
+    # the key scans' covariance is the smaller: no odometry since the key scan
+    assert np.median(traj.covs[traj.key, 2, 2]) < np.median(traj.covs[~traj.key, 2, 2])
