@@ -52,16 +52,16 @@ class ChainConfig:
     scale times its displacement from the start (docs/pose.md, "Start-up bias" and "Session 30").
     revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan whose match was fused
     with at least ``revisit_share`` of its matched points on cells whose end points came (on average) from a key
-    scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (the route came
-    back onto older map) is placed against those cells in the directions its match constrained, not only by the
+    scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (map placed before
+    the route turned or came back) is placed against those cells in the directions its match constrained, not only by the
     step from the key scan before it."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1
     min_sigma: tuple[float, float, float] = (0.001, 0.001, 0.0005)
     chain_scale: tuple[float, float, float] = (0.55, 0.22, 0.17)
-    scale_sigma: float = 0.0008
-    revisit_gap: float = 20.0
+    scale_sigma: float = 0.0016
+    revisit_gap: float = 0.01
     revisit_share: float = 0.5
 
     def step_covariance(self, prev: KeyScan, key: KeyScan) -> np.ndarray:
