@@ -105,8 +105,9 @@ def main() -> int:
     for r in rows:
         ok = NEES_BAND[0] <= r["nees_mean"] <= NEES_BAND[1] and r["inside_95"] >= INSIDE_MIN
         print(f"{r['world']:22s} seed {r['seed']:2d}  ATE {100 * r['ate_rmse']:5.2f} cm  NEES {r['nees_mean']:6.2f}  "
-              f"inside {100 * r['inside_95']:5.1f} %  (key {r['nees_key_mean']:5.2f} between {r['nees_between_mean']:5.2f}; "
-              f"yaw {r['yaw_nees_key_mean']:4.2f} {r['yaw_nees_between_mean']:4.2f})  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
+              f"inside {100 * r['inside_95']:5.1f} %  (key {r['nees_key_mean']:5.2f} "
+              f"between {r['nees_between_mean']:5.2f}; yaw {r['yaw_nees_key_mean']:4.2f} "
+              f"{r['yaw_nees_between_mean']:4.2f})  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
               f"{'in band' if ok else 'OUT'}", flush=True)
     _summary(rows)
     print(f"{time.perf_counter() - t0:.0f} s")
@@ -133,7 +134,8 @@ def _summary(rows: list[dict]) -> None:
           f"ATE mean {100 * np.mean([r['ate_rmse'] for r in rows]):.2f} cm")
     key = np.array([r["nees_key_mean"] for r in rows])
     between = np.array([r["nees_between_mean"] for r in rows])
-    print(f"mean NEES of the key scans: min {np.nanmin(key):.2f} median {np.nanmedian(key):.2f} max {np.nanmax(key):.2f}; "
+    print(f"mean NEES of the key scans: min {np.nanmin(key):.2f} median {np.nanmedian(key):.2f} "
+          f"max {np.nanmax(key):.2f}; "
           f"of the scans between them: min {np.nanmin(between):.2f} median {np.nanmedian(between):.2f} "
           f"max {np.nanmax(between):.2f}")
     worlds = sorted({r["world"] for r in rows})

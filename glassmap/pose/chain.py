@@ -53,8 +53,8 @@ class ChainConfig:
     revisit_gap (m; 0: off) and revisit_share, used by :class:`DriftChain` only: a key scan whose match was fused
     with at least ``revisit_share`` of its matched points on cells whose end points came (on average) from a key
     scan it reached along a path longer than their straight-line distance plus ``revisit_gap`` (map placed before
-    the route turned or came back) is placed against those cells in the directions its match constrained, not only by the
-    step from the key scan before it."""
+    the route turned or came back) is placed against those cells in the directions its match constrained, not
+    only by the step from the key scan before it."""
 
     motion: MotionNoise = field(default_factory=MotionNoise)
     match_scale: float = 0.1

@@ -183,8 +183,9 @@ def _line(r: dict) -> str:
     return (f"{r['world']:15s} seed {r['seed']:3d}  ATE {100 * r['ate_rmse']:5.1f} cm (max {100 * r['ate_max']:5.1f}) "
             f"drift {100 * r['final_drift']:5.1f} cm | odometry ATE {100 * r['odom_ate_rmse']:6.1f} cm drift "
             f"{100 * r['odom_final_drift']:6.1f} cm | yaw {r['yaw_rmse_deg']:.2f} deg | NEES {r['nees_mean']:5.2f} "
-            f"in95 {100 * r['inside_95']:5.1f} % (key scans {r['nees_key_mean']:.2f}, between {r['nees_between_mean']:.2f}; "
-            f"yaw alone {r['yaw_nees_key_mean']:.2f}, {r['yaw_nees_between_mean']:.2f}) | gated {r['gated']} lost {r['lost_events']} ambiguous "
+            f"in95 {100 * r['inside_95']:5.1f} % (key scans {r['nees_key_mean']:.2f}, between "
+            f"{r['nees_between_mean']:.2f}; yaw alone {r['yaw_nees_key_mean']:.2f}, {r['yaw_nees_between_mean']:.2f}) "
+            f"| gated {r['gated']} lost {r['lost_events']} ambiguous "
             f"{r['ambiguous_events']} | sigma_xy {100 * r['sigma_xy_mean']:.1f} cm | "
             f"key scans {100 * r['key_share']:.0f} % | core {r['t_core_median_ms']:.2f} ms (key scans "
             f"{r['t_core_key_median_ms']:.2f} ms)" + lc)
