@@ -81,7 +81,7 @@ class RunMetrics:
     nees_mean: float
     nees_median: float
     inside_95: float
-    # the mean NEES split by scan kind: key scans (placed by a match; their covariance is the chain's) and
+    # the mean NEES split by scan kind: key scans (matched and integrated; their covariance is the chain's) and
     # the scans between them (the chain's plus odometry since the key scan); yaw alone (1 dof) for each
     nees_key_mean: float
     nees_between_mean: float
