@@ -18,6 +18,12 @@ comes from", has the findings.
 Usage: .venv/bin/python scripts/pose_map_bias.py WORLD [--seconds 20] [--seed 0] [--route short]
            [--no-range-noise] [--map-true-ranges] [--match-true-ranges] [--full-map]
            [--field line_normals=0,pool=2] [--matcher voxel=0.1] [--refresh N] [--dump X:Y]
+           [--no-mirror] [--exact-field] [--refine]
+
+--exact-field replaces, in this script only, the field the matcher's fine stage reads with the exact distance
+to the world's walls (an oracle: what an exact map would give, at corners too); --refine moves each match
+to the 3-D maximum of its score (of the exact field's with --exact-field), so that the matcher's sub-lattice
+estimate and the field's own peak can be told apart.
 Use validation worlds (seeds 1000-1999), built-in ones or tests/pose/data/*.toml, never test worlds.
 """
 
@@ -26,14 +32,22 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
+import numba
 import numpy as np
 
+from glassmap.pose import matcher as matcher_module
 from glassmap.pose.estimator import HIT_LAYERS, EstimatorConfig, PoseEstimator
 from glassmap.pose.matcher import select_points
 from glassmap.sim.dataset import simulate_run
 from glassmap.sim.laser import world_laser_params
 from glassmap.sim.world import load_world
 
+FAR = 10.0  # m: the field's vector where no wall is near (glassmap.pose.field.FAR)
+EXACT_CUT = 0.2  # m: beyond it the exact field, as the estimator's, gives the floor
+REFINE_STEP = np.array([0.002, 0.002, 0.0002])  # m, m, rad
+REFINE_GRID = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), dtype=float).reshape(3, -1).T
+REFINE_DESIGN = np.stack([np.ones(27), *REFINE_GRID.T, *(REFINE_GRID ** 2).T, REFINE_GRID[:, 0] * REFINE_GRID[:, 1],
+                          REFINE_GRID[:, 0] * REFINE_GRID[:, 2], REFINE_GRID[:, 1] * REFINE_GRID[:, 2]], axis=1)
 OFFSETS = np.linspace(-0.05, 0.05, 11)  # m along the beam around the true end point (field profile)
 DENSE = np.arange(-0.01, 0.01001, 0.00025)  # m along the track around the true pose (where the score peaks)
 
@@ -52,7 +66,77 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--matcher", default="", help="MatcherConfig overrides, e.g. voxel=0.1,max_points=300")
     ap.add_argument("--refresh", type=int, default=0, help="rebuild the field every N key scans (0: the estimator's)")
     ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
+    ap.add_argument("--no-mirror", action="store_true", help="simulate the laser without mirror images behind glass")
+    ap.add_argument("--exact-field", action="store_true",
+                    help="the matcher's fine stage scores the exact distance to the world's walls (oracle)")
+    ap.add_argument("--refine", action="store_true", help="move each match to the 3-D maximum of its score")
     return ap.parse_args()
+
+
+@numba.njit(cache=False)
+def _exact_squared_distances(segs, px, py, c, s, ox, oy, res, tx, ty, scale, cut):
+    """As ``matcher_jit.scaled_squared_distances``, from the exact distance of each moved point to the nearest
+    of the wall segments ``segs`` (m, (m, 2, 2), in the field's frame); beyond ``cut`` (m) the far vector's."""
+    out = np.empty((c.shape[0], tx.shape[0], px.shape[0]), np.float32)
+    for k in range(c.shape[0]):
+        kx, ky = (k if ox.shape[0] > 1 else 0), (k if oy.shape[0] > 1 else 0)
+        for j in range(px.shape[0]):
+            bx = c[k] * px[j] - s[k] * py[j] + ox[kx]
+            by = s[k] * px[j] + c[k] * py[j] + oy[ky]
+            for t in range(tx.shape[0]):
+                qx, qy = bx + tx[t] * res, by + ty[t] * res
+                best = FAR * FAR
+                for i in range(segs.shape[0]):
+                    ax, ay = segs[i, 0, 0], segs[i, 0, 1]
+                    dx, dy = segs[i, 1, 0] - ax, segs[i, 1, 1] - ay
+                    l2 = dx * dx + dy * dy
+                    u = min(max(((qx - ax) * dx + (qy - ay) * dy) / l2, 0.0), 1.0) if l2 > 0 else 0.0
+                    ex, ey = qx - ax - u * dx, qy - ay - u * dy
+                    best = min(best, ex * ex + ey * ey)
+                out[k, t, j] = np.float32(best if best <= cut * cut else FAR * FAR) * scale
+    return out
+
+
+def _use_exact_field(est: PoseEstimator, segs: np.ndarray) -> None:
+    """Make the matcher's fine stage (this process only) score the exact distance to ``segs`` (m, map frame)."""
+    def distances(vx, vy, px, py, c, s, ox, oy, res, off, margin, w, h, scale):
+        ty = np.round(off / w)
+        local = segs - np.asarray(est.field.origin)[None, None, :]
+        return _exact_squared_distances(local, px, py, c, s, ox, oy, float(res), off - ty * w, ty, scale, EXACT_CUT)
+
+    matcher_module.scaled_squared_distances = distances
+
+
+def _score(est: PoseEstimator, pts: np.ndarray, w: np.ndarray, pose: np.ndarray, segs: np.ndarray | None) -> float:
+    """The matcher's score of base-frame points ``pts`` at ``pose``: the field's, or the exact walls' ``segs``."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    p = est.field.params
+    if segs is not None:
+        d2 = _exact_squared_distances(segs, np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                                      np.array([c]), np.array([s]), pose[:1], pose[1:2], 1.0, np.zeros(1),
+                                      np.zeros(1), np.float32(-0.5 / p.sigma_hit ** 2), EXACT_CUT)[0, 0]
+        return float(w @ np.log(np.exp(d2.astype(np.float64)) + p.p_floor))
+    xy = pose[:2] + np.stack([c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]], axis=1)
+    return float(w @ est.field.log_likelihood(xy))
+
+
+def _refined(est: PoseEstimator, pts: np.ndarray, w: np.ndarray, pose: np.ndarray,
+             segs: np.ndarray | None) -> np.ndarray:
+    """``pose`` moved to the 3-D maximum of the score: quadratic fits over 3 x 3 x 3 poses 2 mm / 0.2 mrad apart,
+    until the step is small; ``pose`` itself where the score does not curve down in every direction."""
+    q = pose.copy()
+    for _ in range(6):
+        vals = np.array([_score(est, pts, w, q + g * REFINE_STEP, segs) for g in REFINE_GRID])
+        coef = np.linalg.lstsq(REFINE_DESIGN, vals, rcond=None)[0]
+        hess = np.array([[2 * coef[4], coef[7], coef[8]], [coef[7], 2 * coef[5], coef[9]],
+                         [coef[8], coef[9], 2 * coef[6]]])
+        if np.linalg.eigvalsh(hess).max() >= 0:
+            return pose
+        step = np.clip(-np.linalg.solve(hess, coef[1:4]), -3, 3)
+        q = q + step * REFINE_STEP
+        if np.all(np.abs(step) < 0.05):
+            break
+    return q
 
 
 def _overrides(obj, text: str):
@@ -69,6 +153,8 @@ def main() -> int:
     laser = world_laser_params(world)
     if args.no_range_noise:
         laser = replace(laser, range_noise=0.0, range_noise_slope=0.0)
+    if args.no_mirror:
+        laser = replace(laser, mirror_reflections=False)
     run = simulate_run(world, args.route, seed=args.seed, laser_params=laser)
     cfg = EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]), background_field=False)
     cfg = replace(cfg, likelihood=_overrides(cfg.likelihood, args.field), matcher=_overrides(cfg.matcher, args.matcher))
@@ -76,6 +162,9 @@ def main() -> int:
         cfg = replace(cfg, field_refresh_scans=args.refresh)
     est = PoseEstimator(cfg)
     g = est.occupancy.grid
+    segs = np.asarray(world.segments, dtype=np.float64) if args.exact_field else None
+    if segs is not None:
+        _use_exact_field(est, segs)
 
     def rebuild(xy):
         est.field.rebuild(est.occupancy, xy, tuple(g[k] for k in HIT_LAYERS))
@@ -102,6 +191,8 @@ def main() -> int:
                 ranges = exact if args.match_true_ranges else measured
                 pts, w, idx = select_points(scan.angles, ranges, est.mount, cfg.matcher)
                 res = est.matcher.match(est.field, pts, w, truth, np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2]))
+                if res is not None and args.refine:
+                    res = replace(res, pose=_refined(est, pts, w, res.pose, segs))
                 c, s = np.cos(truth[2]), np.sin(truth[2])
                 if res is not None:
                     d = res.pose - truth
