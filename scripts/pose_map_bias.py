@@ -37,12 +37,12 @@ import numpy as np
 
 from glassmap.pose import matcher as matcher_module
 from glassmap.pose.estimator import HIT_LAYERS, EstimatorConfig, PoseEstimator
+from glassmap.pose.field import FAR
 from glassmap.pose.matcher import select_points
 from glassmap.sim.dataset import simulate_run
 from glassmap.sim.laser import world_laser_params
 from glassmap.sim.world import load_world
 
-FAR = 10.0  # m: the field's vector where no wall is near (glassmap.pose.field.FAR)
 EXACT_CUT = 0.2  # m: beyond it the exact field, as the estimator's, gives the floor
 REFINE_STEP = np.array([0.002, 0.002, 0.0002])  # m, m, rad
 REFINE_GRID = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), dtype=float).reshape(3, -1).T
