@@ -64,7 +64,9 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--full-map", action="store_true", help="build the whole run's map first, then match")
     ap.add_argument("--field", default="", help="FieldParams overrides, e.g. line_normals=0,pool=2")
     ap.add_argument("--matcher", default="", help="MatcherConfig overrides, e.g. voxel=0.1,max_points=300")
-    ap.add_argument("--refresh", type=int, default=0, help="rebuild the field every N key scans (0: the estimator's)")
+    ap.add_argument("--refresh", type=int, default=0,
+                    help="rebuild the field every N key scans instead of updating it at every key scan (0: the "
+                         "estimator's default, an update)")
     ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
     ap.add_argument("--no-mirror", action="store_true", help="simulate the laser without mirror images behind glass")
     ap.add_argument("--exact-field", action="store_true",
@@ -159,7 +161,7 @@ def main() -> int:
     cfg = EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]), background_field=False)
     cfg = replace(cfg, likelihood=_overrides(cfg.likelihood, args.field), matcher=_overrides(cfg.matcher, args.matcher))
     if args.refresh:
-        cfg = replace(cfg, field_refresh_scans=args.refresh)
+        cfg = replace(cfg, field_incremental=False, field_refresh_scans=args.refresh)
     est = PoseEstimator(cfg)
     g = est.occupancy.grid
     segs = np.asarray(world.segments, dtype=np.float64) if args.exact_field else None
@@ -238,9 +240,12 @@ def main() -> int:
             est.ekf.pose = truth.copy()  # _store_hits places the end points at the filter's pose
             est._store_hits(scan.angles, map_ranges, scan.geometry.range_max)
             since += 1
-            if since >= cfg.field_refresh_scans or not est.field.ready:
+            if (not est.field.ready or (not cfg.field_incremental and since >= cfg.field_refresh_scans)
+                    or np.max(np.abs(truth[:2] - est.field.center)) > cfg.field_recentre):
                 rebuild(truth[:2])
                 since = 0
+            elif cfg.field_incremental:  # as the estimator: the field follows the map at every key scan
+                est.field.refresh(est.occupancy, tuple(g[k] for k in HIT_LAYERS))
     e = np.array(errs)
     for lo, hi in ((0, args.seconds / 2), (args.seconds / 2, args.seconds), (0, args.seconds)):
         m = (e[:, 0] >= lo) & (e[:, 0] < hi)

@@ -51,9 +51,9 @@ def main() -> int:
     base = EstimatorConfig()
     est = {"every-scan": replace(base, keyframe_distance=0.0, keyframe_angle=0.0),
            "sigma-hit-5cm": replace(base, likelihood=replace(base.likelihood, sigma_hit=0.05)),
-           "field-every-1": replace(base, field_refresh_scans=1),
-           "field-every-2": replace(base, field_refresh_scans=2),
-           "field-every-10": replace(base, field_refresh_scans=10)}
+           "field-every-1": replace(base, field_incremental=False, field_refresh_scans=1),
+           "field-every-2": replace(base, field_incremental=False, field_refresh_scans=2),
+           "field-every-10": replace(base, field_incremental=False, field_refresh_scans=10)}
     runs: dict[str, object] = {}
     for name in args.variants.split(","):
         if name not in VARIANTS:

@@ -102,9 +102,15 @@ class EstimatorConfig:
         moved >= keyframe_distance (m, default 0.05) or turned >= keyframe_angle (rad, default 2 deg) since
         the last key scan, or that comes keyframe_max_scans (default 20, 0 = never forced) scans after it.
         keyframe_distance = keyframe_angle = 0 makes every scan a key scan.
-    field_refresh_scans: the likelihood field is rebuilt from the grid after this many key scans were
-        integrated, on the next scan (a non-key scan, so the cost does not add to a key scan's), and on a
-        key scan when the robot nears the edge of the field's crop or the grid grew.
+    field_incremental: bring the likelihood field up to date with the grid at every key scan, before its
+        match, computing only the cells whose nearest wall or wall point changed
+        (:meth:`LikelihoodField.refresh`: the field a rebuild of the same crop gives); it is rebuilt around
+        the robot once the robot is ``field_recentre`` (m, in x or y) from the crop's centre (on the next
+        non-key scan, as the periodic rebuild below), and on a key scan when the robot nears the crop's
+        edge or the grid grew.
+    field_refresh_scans: without ``field_incremental``, the likelihood field is rebuilt from the grid after
+        this many key scans were integrated, on the next scan (a non-key scan, so the cost does not add to
+        a key scan's), and on a key scan when the robot nears the edge of the field's crop or the grid grew.
     background_field: compute that periodic rebuild in a worker thread (the grid crop is copied on the
         non-key scan, the result is installed at the next key scan, waiting for it if needed), so its
         10-20 ms stay off the scan-processing path; the results are the same as without it.
@@ -169,6 +175,8 @@ class EstimatorConfig:
     keyframe_distance: float = 0.05
     keyframe_angle: float = float(np.radians(2.0))
     keyframe_max_scans: int = 20
+    field_incremental: bool = True
+    field_recentre: float = 1.0
     field_refresh_scans: int = 10
     background_field: bool = True
     gate_chi2: float = 21.1
@@ -196,6 +204,8 @@ class EstimatorConfig:
                              f"{self.keyframe_distance}, {self.keyframe_angle}, {self.keyframe_max_scans}")
         if self.field_refresh_scans < 1:
             raise ValueError(f"field_refresh_scans must be >= 1, got {self.field_refresh_scans}")
+        if not self.field_recentre > 0:
+            raise ValueError(f"field_recentre (m) must be > 0, got {self.field_recentre}")
         if self.map_uncertainty not in MAP_UNCERTAINTY:
             raise ValueError(f"map_uncertainty must be one of {MAP_UNCERTAINTY}, got {self.map_uncertainty!r}")
 
@@ -212,8 +222,9 @@ class EstimatorStats:
     gated: int = 0
     wide_searches: int = 0  # key-scan matches searched over the widest heading window (after a rejected match)
     field_rebuilds: int = 0
+    field_updates: int = 0
     t_core: float = 0.0  # prediction + matching + covariance + fusion of the last scan
-    t_field: float = 0.0  # likelihood-field rebuild during the last scan (0 if none)
+    t_field: float = 0.0  # likelihood-field rebuild or update during the last scan (0 if none)
     t_integrate: float = 0.0  # occupancy integration of the last scan
     last_match: MatchResult | None = None
     unconstrained: int = 0  # key-scan matches with at least one direction not fused (degenerate geometry)
@@ -341,8 +352,9 @@ class PoseEstimator:
         st.last_keyframe = key
         st.t_field = 0.0
         if not key:
-            if self._since_rebuild >= cfg.field_refresh_scans and self._pending_field is None:
-                # a periodic refresh that is due runs here, between key scans, not on the next key scan
+            if self._pending_field is None and self._field_due():
+                # a periodic refresh or a re-centring that is due runs here, between key scans, not on the next
+                # key scan
                 self._rebuild_field(background=cfg.background_field)
             st.t_core, st.t_integrate, st.last_match = t_pred, 0.0, None
             st.scans += 1
@@ -354,10 +366,12 @@ class PoseEstimator:
         self._install_pending_field()
         # (a field with no walls yet is rebuilt as soon as a scan has been integrated: otherwise the first
         # field_refresh_scans key scans would all be placed by odometry alone, and the map keeps their errors)
-        if (self._since_rebuild >= cfg.field_refresh_scans
+        if ((not cfg.field_incremental and self._since_rebuild >= cfg.field_refresh_scans)
                 or (not self.field.ready and self._since_rebuild > 0)
                 or self.field.needs_rebuild(self.occupancy, self.scan_pose()[:2], cfg.matcher.range_max * 0.25 + 1.0)):
             self._rebuild_field()
+        elif cfg.field_incremental and self.field.arrays is not None:
+            self._update_field()
 
         # ---- matching + fusion
         t2 = time.perf_counter()
@@ -578,6 +592,23 @@ class PoseEstimator:
         self._since_rebuild = 0
         self.stats.field_rebuilds += 1
         self.stats.t_field = time.perf_counter() - t
+
+    def _field_due(self) -> bool:
+        """Whether a rebuild of the likelihood field is due between key scans: periodic, or with
+        ``field_incremental`` once the robot is ``field_recentre`` from the crop's centre."""
+        cfg = self.config
+        if not cfg.field_incremental:
+            return self._since_rebuild >= cfg.field_refresh_scans
+        return self.field.ready and bool(np.max(np.abs(self.scan_pose()[:2] - self.field.center)) > cfg.field_recentre)
+
+    def _update_field(self) -> None:
+        """Bring the likelihood field up to date with the grid on its crop (time in ``stats.t_field``)."""
+        t = time.perf_counter()
+        g = self.occupancy.grid
+        self.field.refresh(self.occupancy, tuple(g[n] for n in HIT_LAYERS) if self.config.subcell_walls else None)
+        self._since_rebuild = 0
+        self.stats.field_updates += 1
+        self.stats.t_field += time.perf_counter() - t
 
     def _install_pending_field(self) -> None:
         """Install a field computed in the background (waits for it: results do not depend on timing)."""

@@ -13,12 +13,13 @@ a square crop around the robot and is rebuilt from the grid when asked.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from glassmap.grid import OccupancyGrid
-from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells
+from glassmap.pose.field_jit import (cells_of_walls, changed_cells, forward_maximum, forward_maximum_at, near_cells, neighbour_sums,
+                                     renew_nearest, unique_cells)
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
@@ -76,6 +77,8 @@ class FieldArrays:
     n_occupied: int
     vx: np.ndarray | None = None
     vy: np.ndarray | None = None
+    nearest: np.ndarray | None = None  # (h, w) of the crop: flat index of each cell's nearest occupied cell, -1
+    counts: np.ndarray | None = None  # copy of the crop's end-point counts the arrays were computed from
 
 
 class LikelihoodField:
@@ -97,6 +100,7 @@ class LikelihoodField:
         self.n_occupied = 0
         self.center = np.zeros(2)
         self.generation = -1
+        self.arrays: FieldArrays | None = None  # what is installed, for :meth:`refresh`
 
     @property
     def ready(self) -> bool:
@@ -120,10 +124,18 @@ class LikelihoodField:
         thread (it touches no shared state) and installs the result at the next key scan."""
         self.install(self.compute(self.snapshot(occupancy, center_xy, points)))
 
+    def refresh(self, occupancy: OccupancyGrid,
+                points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+        """Bring the field up to date with the grid on its own crop (centre kept): :meth:`update` of the
+        installed arrays, the same field as a rebuild on that crop. Rebuilds when nothing is installed."""
+        inputs = self.snapshot(occupancy, self.center, points, copy=False)
+        self.install(self.compute(inputs) if self.arrays is None else self.update(self.arrays, inputs))
+
     def snapshot(self, occupancy: OccupancyGrid, center_xy: np.ndarray,
-                 points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> FieldInputs:
+                 points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, copy: bool = True) -> FieldInputs:
         """Copy what :meth:`compute` needs from the grid (the crop around ``center_xy``): cheap, and the grid
-        may change afterwards."""
+        may change afterwards. ``copy`` False: the end-point layers are views of the grid's (for a field
+        computed at once, not in another thread)."""
         p = self.params
         g = occupancy.grid
         res = g.resolution
@@ -134,62 +146,127 @@ class LikelihoodField:
         y0, y1 = max(cy - half, 0), min(cy + half + 1, h)
         empty = x1 <= x0 or y1 <= y0
         occ = None if empty else occupancy.log_odds[y0:y1, x0:x1] > p.occupied_log_odds
-        pts = None if (empty or points is None) else tuple(a[y0:y1, x0:x1].copy() for a in points)
+        pts = None if (empty or points is None) else tuple(a[y0:y1, x0:x1] for a in points)
+        if pts is not None and copy:
+            pts = tuple(a.copy() for a in pts)
         return FieldInputs(occ, pts, np.asarray(center_xy, dtype=np.float64).copy(), g.generation, res,
                            g.origin + np.array([x0, y0]) * res)
 
     def compute(self, inputs: FieldInputs) -> FieldArrays:
         """The field arrays of a snapshot (pure: no shared state, safe in a worker thread)."""
         p = self.params
-        res = inputs.resolution
         occ = inputs.occupied
         if occ is None:
             return FieldArrays(inputs, None, None, (0, 0), 0)
         n_occupied = int(occ.sum())
         pad = p.pad
-        floor = np.float32(np.log(p.p_floor))
-        field = np.full((occ.shape[0] + 2 * pad, occ.shape[1] + 2 * pad), floor, dtype=np.float32)
+        field = np.full((occ.shape[0] + 2 * pad, occ.shape[1] + 2 * pad), self._floor32, dtype=np.float32)
         vx = vy = None
         if p.vectors:  # "far": a vector long enough that the Gaussian is below the floor's resolution
             vx = np.full(field.shape, np.float32(FAR), dtype=np.float32)
             vy = np.zeros(field.shape, dtype=np.float32)
+        nearest = np.full(occ.shape, -1, dtype=np.int32)
         if n_occupied:
-            # beyond cut (m) the Gaussian is negligible against the floor (< 1e-4 in log), so only the cells
-            # that close to a wall are computed; the rest keep the floor
-            cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
-            inner = field[pad:-pad, pad:-pad]
-            cut_c = int(np.ceil(cut / res))
-            # the cells within cut_c cells of their nearest occupied cell (ny, nx), and the offset (ddy, ddx)
-            # to it in cells
-            iy, ix, ny, nx, ddy, ddx = near_cells(occ, cut_c * cut_c)
-            near = (iy, ix)
-            points, pool = inputs.points, p.pool
-            if points is None:  # no end-point layers: one point at the centre of each occupied cell (cell
-                cnt0 = occ.astype(np.float64)  # centres carry no measurement bias: nothing to pool)
-                points, pool = (0.5 * res * cnt0, 0.5 * res * cnt0, cnt0), 0
-            # the wall point and normal are needed only at the occupied cells some near cell is closest to
-            u, inv = unique_cells(ny, nx, occ.shape[0], occ.shape[1])  # np.unique(flat, return_inverse=True)
-            uy, ux = np.divmod(u, occ.shape[1])
-            sx, sy, c, nrm = self._pooled(points, res, pool, uy, ux)
-            has = c > 0
-            cs = np.where(has, c, 1)
-            mx = np.where(has, sx / cs, 0.5 * res)[inv]  # mean offset in the cell (m)
-            my = np.where(has, sy / cs, 0.5 * res)[inv]
-            ex, ey = (ddx - 0.5) * res + mx, (ddy - 0.5) * res + my  # cell centre -> wall point (m)
-            if nrm is not None:  # straight wall there: distance along its normal only
-                nx_, ny_ = nrm[0][inv], nrm[1][inv]
-                line = (has & nrm[2])[inv]
-                dot = ex * nx_ + ey * ny_
-                ex, ey = np.where(line, dot * nx_, ex), np.where(line, dot * ny_, ey)
-            d = np.hypot(ex, ey)
-            inner[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
-            if vx is not None:
-                vx[pad:-pad, pad:-pad][near] = ex
-                vy[pad:-pad, pad:-pad][near] = ey
+            # the cells within the cut of their nearest occupied cell (ny, nx)
+            iy, ix, ny, nx, _, _ = near_cells(occ, self._cut2(inputs.resolution))
+            nearest[iy, ix] = ny * occ.shape[1] + nx
+            self._evaluate(inputs, iy, ix, ny, nx, field, vx, vy)
         f = p.coarse_factor
         coarse = forward_maximum(field, f)  # = ndimage.maximum_filter(field, f, origin=-(f // 2), mode="nearest")
         return FieldArrays(inputs, field.ravel(), coarse.ravel(), field.shape, n_occupied,
-                           None if vx is None else vx.ravel(), None if vy is None else vy.ravel())
+                           None if vx is None else vx.ravel(), None if vy is None else vy.ravel(), nearest,
+                           None if inputs.points is None else inputs.points[2].copy())
+
+    def update(self, arrays: FieldArrays, inputs: FieldInputs) -> FieldArrays:
+        """The field of ``inputs`` from ``arrays``, the field of an earlier snapshot of the same crop: only
+        the cells whose nearest occupied cell or whose wall point can have changed are computed again, and
+        the result equals :meth:`compute` (inputs) to the last bit. The arrays of ``arrays`` are modified in
+        place (``arrays`` is stale afterwards). Computes the whole field when the crop differs."""
+        old, p = arrays.inputs, self.params
+        if (arrays.fine is None or arrays.nearest is None or old.occupied is None or inputs.occupied is None
+                or old.occupied.shape != inputs.occupied.shape or old.resolution != inputs.resolution
+                or not np.array_equal(old.crop_origin, inputs.crop_origin)
+                or (arrays.counts is None) != (inputs.points is None)):
+            return self.compute(inputs)
+        occ, nearest = inputs.occupied, arrays.nearest
+        cnt, cnt_old = (occ, old.occupied.copy()) if arrays.counts is None else (inputs.points[2], arrays.counts)
+        # the occupied cells added or cleared, and the cells whose end points changed (their count did; the
+        # copy of the counts is brought up to date on the way; without end-point layers the wall points are
+        # the occupied cells' centres, so those are the same cells)
+        fy, fx, wy, wx = changed_cells(occ, old.occupied, cnt, cnt_old)
+        n_occupied = int(occ.sum())
+        if fy.size == 0 and wy.size == 0:
+            return replace(arrays, inputs=inputs)
+        shape = arrays.shape
+        pad, w = p.pad, occ.shape[1]
+        field, coarse = arrays.fine.reshape(shape), arrays.coarse.reshape(shape)
+        vx = None if arrays.vx is None else arrays.vx.reshape(shape)
+        vy = None if arrays.vy is None else arrays.vy.reshape(shape)
+        cut2 = self._cut2(inputs.resolution)
+        mark = np.zeros(occ.shape, dtype=np.bool_)
+        ay, ax = renew_nearest(occ, nearest, fy, fx, cut2, mark)  # the cells whose nearest cell may differ
+        # and those whose nearest cell's wall point or normal may differ (it pools the end points of the
+        # (2 k + 1)^2 cells around it)
+        k = max(p.pool, 2 if p.line_normals else 0)
+        by, bx = cells_of_walls(nearest, wy, wx, k, int(np.sqrt(cut2)), mark, mark.copy())
+        cy, cx = np.concatenate([ay, by]), np.concatenate([ax, bx])
+        cy, cx = np.divmod(np.unique(cy * w + cx), w)
+        near = nearest[cy, cx]
+        gone = near < 0  # no occupied cell within the cut any more: the floor
+        field[cy[gone] + pad, cx[gone] + pad] = self._floor32
+        if vx is not None:
+            vx[cy[gone] + pad, cx[gone] + pad] = np.float32(FAR)
+            vy[cy[gone] + pad, cx[gone] + pad] = 0.0
+        iy, ix = cy[~gone], cx[~gone]
+        ny, nx = np.divmod(near[~gone], np.int32(w))
+        self._evaluate(inputs, iy, ix, ny, nx, field, vx, vy)
+        forward_maximum_at(field, coarse, cy + pad, cx + pad, p.coarse_factor, np.zeros(shape, dtype=np.bool_))
+        return FieldArrays(inputs, arrays.fine, arrays.coarse, shape, n_occupied, arrays.vx, arrays.vy, nearest,
+                           arrays.counts)
+
+    @property
+    def _floor32(self) -> np.float32:
+        return np.float32(np.log(self.params.p_floor))
+
+    def _cut2(self, res: float) -> int:
+        """Squared cut-off (cells^2): beyond it the Gaussian is negligible against the floor (< 1e-4 in log),
+        so only the cells that close to a wall are computed; the rest keep the floor."""
+        p = self.params
+        cut = p.sigma_hit * float(np.sqrt(-2.0 * np.log(1e-4 * p.p_floor))) + res
+        cut_c = int(np.ceil(cut / res))
+        return cut_c * cut_c
+
+    def _evaluate(self, inputs: FieldInputs, iy: np.ndarray, ix: np.ndarray, ny: np.ndarray, nx: np.ndarray,
+                  field: np.ndarray, vx: np.ndarray | None, vy: np.ndarray | None) -> None:
+        """Write the log-likelihood (and the vectors) of the crop cells (iy, ix) whose nearest occupied cell
+        is (ny, nx) (int32) into the padded arrays ``field``, ``vx``, ``vy``."""
+        p = self.params
+        res, occ, pad = inputs.resolution, inputs.occupied, p.pad
+        ddy, ddx = ny - iy.astype(np.int32), nx - ix.astype(np.int32)  # offset to the nearest cell (cells)
+        near = (iy + pad, ix + pad)
+        points, pool = inputs.points, p.pool
+        if points is None:  # no end-point layers: one point at the centre of each occupied cell (cell
+            cnt0 = occ.astype(np.float64)  # centres carry no measurement bias: nothing to pool)
+            points, pool = (0.5 * res * cnt0, 0.5 * res * cnt0, cnt0), 0
+        # the wall point and normal are needed only at the occupied cells some cell is closest to
+        u, inv = unique_cells(ny, nx, occ.shape[0], occ.shape[1])  # np.unique(flat, return_inverse=True)
+        uy, ux = np.divmod(u, occ.shape[1])
+        sx, sy, c, nrm = self._pooled(points, res, pool, uy, ux)
+        has = c > 0
+        cs = np.where(has, c, 1)
+        mx = np.where(has, sx / cs, 0.5 * res)[inv]  # mean offset in the cell (m)
+        my = np.where(has, sy / cs, 0.5 * res)[inv]
+        ex, ey = (ddx - 0.5) * res + mx, (ddy - 0.5) * res + my  # cell centre -> wall point (m)
+        if nrm is not None:  # straight wall there: distance along its normal only
+            nx_, ny_ = nrm[0][inv], nrm[1][inv]
+            line = (has & nrm[2])[inv]
+            dot = ex * nx_ + ey * ny_
+            ex, ey = np.where(line, dot * nx_, ex), np.where(line, dot * ny_, ey)
+        d = np.hypot(ex, ey)
+        field[near] = np.log(np.exp(-0.5 * (d / p.sigma_hit) ** 2) + p.p_floor).astype(np.float32)
+        if vx is not None:
+            vx[near] = ex
+            vy[near] = ey
 
     def _pooled(self, points: tuple[np.ndarray, np.ndarray, np.ndarray], res: float, k: int, cy: np.ndarray,
                 cx: np.ndarray
@@ -252,6 +329,7 @@ class LikelihoodField:
 
     def install(self, arrays: FieldArrays) -> None:
         """Make computed arrays the current field."""
+        self.arrays = arrays
         inputs = arrays.inputs
         self.center = inputs.center
         self.generation = inputs.generation

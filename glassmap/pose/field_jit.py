@@ -139,6 +139,127 @@ def neighbour_sums(sx: np.ndarray, sy: np.ndarray, cnt: np.ndarray, cy: np.ndarr
     return c, ax, ay
 
 
+@_jit
+def changed_cells(occ: np.ndarray, occ_old: np.ndarray, cnt: np.ndarray, cnt_old: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rows and columns (int64) of the cells where the (H, W) bool ``occ`` differs from ``occ_old``, then of
+    those where ``cnt`` differs from ``cnt_old``; ``cnt_old`` is set to ``cnt`` on the way (in place)."""
+    h, w = occ.shape
+    fy, fx = np.empty(h * w, np.int64), np.empty(h * w, np.int64)
+    cy, cx = np.empty(h * w, np.int64), np.empty(h * w, np.int64)
+    nf = nc = 0
+    for y in range(h):
+        for x in range(w):
+            if occ[y, x] != occ_old[y, x]:
+                fy[nf], fx[nf] = y, x
+                nf += 1
+            if cnt[y, x] != cnt_old[y, x]:
+                cnt_old[y, x] = cnt[y, x]
+                cy[nc], cx[nc] = y, x
+                nc += 1
+    return fy[:nf], fx[:nf], cy[:nc], cx[:nc]
+
+
+@_jit
+def _window_cells(cy: np.ndarray, cx: np.ndarray, r: int, mark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cells within ``r`` cells (Chebyshev) of any of the cells (cy, cx) of the grid of ``mark`` (each once,
+    in the order first reached): rows and columns (int64). ``mark``: (H, W) bool scratch, all False on entry
+    and on return."""
+    h, w = mark.shape
+    n = 0
+    for k in range(cy.shape[0]):
+        for y in range(max(cy[k] - r, 0), min(cy[k] + r, h - 1) + 1):
+            for x in range(max(cx[k] - r, 0), min(cx[k] + r, w - 1) + 1):
+                if not mark[y, x]:
+                    mark[y, x] = True
+                    n += 1
+    ys, xs = np.empty(n, np.int64), np.empty(n, np.int64)
+    j = 0
+    for k in range(cy.shape[0]):
+        for y in range(max(cy[k] - r, 0), min(cy[k] + r, h - 1) + 1):
+            for x in range(max(cx[k] - r, 0), min(cx[k] + r, w - 1) + 1):
+                if mark[y, x]:
+                    mark[y, x] = False
+                    ys[j], xs[j] = y, x
+                    j += 1
+    return ys, xs
+
+
+@_jit
+def renew_nearest(occ: np.ndarray, nearest: np.ndarray, cy: np.ndarray, cx: np.ndarray, cut2: int,
+                  mark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """After the occupied cells (H, W) ``occ`` changed at the cells (cy, cx): recompute ``nearest`` (H, W)
+    int32, the flat index of each cell's nearest occupied cell within sqrt(``cut2``) cells (-1: none; ties
+    as :func:`near_cells`), at every cell that can have changed (within the cut of a changed cell), in
+    place. Returns those cells' rows and columns. ``mark``: as :func:`_window_cells`."""
+    h, w = occ.shape
+    r = 0
+    while (r + 1) * (r + 1) <= cut2:
+        r += 1
+    ys, xs = _window_cells(cy, cx, r, mark)
+    for k in range(ys.shape[0]):
+        y, x = ys[k], xs[k]
+        bd, bf = cut2 + 1, -1
+        for oy in range(max(y - r, 0), min(y + r, h - 1) + 1):
+            for ox in range(max(x - r, 0), min(x + r, w - 1) + 1):
+                if not occ[oy, ox]:
+                    continue
+                d2 = (oy - y) * (oy - y) + (ox - x) * (ox - x)
+                if d2 > cut2:
+                    continue
+                f = oy * w + ox
+                if d2 < bd or (d2 == bd and (ox < bf % w or (ox == bf % w and f < bf))):
+                    bd, bf = d2, f
+        nearest[y, x] = bf
+    return ys, xs
+
+
+@_jit
+def cells_of_walls(nearest: np.ndarray, cy: np.ndarray, cx: np.ndarray, k: int, r: int, mark: np.ndarray,
+                   wall: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cells whose nearest occupied cell (``nearest``, as :func:`renew_nearest`; it lies within ``r``
+    cells) lies within ``k`` cells (Chebyshev) of one of the cells (cy, cx): rows and columns (int64).
+    ``mark``, ``wall``: (H, W) bool scratch, all False on entry and on return."""
+    h, w = nearest.shape
+    wy, wx = _window_cells(cy, cx, k, wall)
+    for j in range(wy.shape[0]):
+        wall[wy[j], wx[j]] = True
+    ys, xs = _window_cells(cy, cx, k + r, mark)
+    keep = np.zeros(ys.shape[0], np.bool_)
+    for j in range(ys.shape[0]):
+        f = nearest[ys[j], xs[j]]
+        keep[j] = f >= 0 and wall[f // w, f % w]
+    for j in range(wy.shape[0]):
+        wall[wy[j], wx[j]] = False
+    return ys[keep], xs[keep]
+
+
+@_jit
+def forward_maximum_at(a: np.ndarray, out: np.ndarray, cy: np.ndarray, cx: np.ndarray, f: int,
+                       mark: np.ndarray) -> None:
+    """After ``a`` changed at the cells (cy, cx): recompute ``out = forward_maximum(a, f)`` in place at the
+    cells whose f x f block holds one of them. ``mark``: as :func:`_window_cells`."""
+    h, w = a.shape
+    for k in range(cy.shape[0]):
+        for y in range(max(cy[k] - f + 1, 0), cy[k] + 1):
+            for x in range(max(cx[k] - f + 1, 0), cx[k] + 1):
+                if mark[y, x]:
+                    continue
+                mark[y, x] = True
+                m = a[y, x]
+                for dy in range(f):
+                    ry = a[min(y + dy, h - 1)]
+                    for dx in range(f):
+                        v = ry[min(x + dx, w - 1)]
+                        if v > m:
+                            m = v
+                out[y, x] = m
+    for k in range(cy.shape[0]):
+        for y in range(max(cy[k] - f + 1, 0), cy[k] + 1):
+            for x in range(max(cx[k] - f + 1, 0), cx[k] + 1):
+                mark[y, x] = False
+
+
 def warm_up() -> None:
     """Load (or, the first time on a machine, compile) the kernels now, with the argument types the field
     passes, rather than at the first rebuild."""
@@ -147,3 +268,10 @@ def warm_up() -> None:
     unique_cells(np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1)
     layer = np.zeros((1, 1), np.float32)
     neighbour_sums(layer, layer, layer, np.zeros(1, np.int64), np.zeros(1, np.int64), 1, 0.05)
+    one, flag = np.zeros(1, np.int64), np.zeros((1, 1), np.bool_)
+    changed_cells(flag, flag, layer, layer.copy())
+    changed_cells(flag, flag, flag, flag.copy())
+    nearest = np.full((1, 1), -1, np.int32)
+    renew_nearest(flag, nearest, one, one, 1, flag.copy())
+    cells_of_walls(nearest, one, one, 2, 1, flag.copy(), flag.copy())
+    forward_maximum_at(layer, layer.copy(), one, one, 1, flag.copy())
