@@ -101,6 +101,7 @@ class LikelihoodField:
         self.center = np.zeros(2)
         self.generation = -1
         self.arrays: FieldArrays | None = None  # what is installed, for :meth:`refresh`
+        self._marks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # scratch of :meth:`update`
 
     @property
     def ready(self) -> bool:
@@ -194,7 +195,8 @@ class LikelihoodField:
         # copy of the counts is brought up to date on the way; without end-point layers the wall points are
         # the occupied cells' centres, so those are the same cells)
         fy, fx, wy, wx = changed_cells(occ, old.occupied, cnt, cnt_old)
-        n_occupied = int(occ.sum())
+        # occupied count: the old one, plus the cells added, minus those cleared
+        n_occupied = arrays.n_occupied + 2 * int(np.count_nonzero(occ[fy, fx])) - fy.size
         if fy.size == 0 and wy.size == 0:
             return replace(arrays, inputs=inputs)
         shape = arrays.shape
@@ -203,14 +205,13 @@ class LikelihoodField:
         vx = None if arrays.vx is None else arrays.vx.reshape(shape)
         vy = None if arrays.vy is None else arrays.vy.reshape(shape)
         cut2 = self._cut2(inputs.resolution)
-        mark = np.zeros(occ.shape, dtype=np.bool_)
+        mark, wall, mark_padded = self._scratch(occ.shape, shape)
         ay, ax = renew_nearest(occ, nearest, fy, fx, cut2, mark)  # the cells whose nearest cell may differ
-        # and those whose nearest cell's wall point or normal may differ (it pools the end points of the
+        # and the others whose nearest cell's wall point or normal may differ (it pools the end points of the
         # (2 k + 1)^2 cells around it)
         k = max(p.pool, 2 if p.line_normals else 0)
-        by, bx = cells_of_walls(nearest, wy, wx, k, int(np.sqrt(cut2)), mark, mark.copy())
+        by, bx = cells_of_walls(nearest, wy, wx, k, int(np.sqrt(cut2)), ay * w + ax, mark, wall)
         cy, cx = np.concatenate([ay, by]), np.concatenate([ax, bx])
-        cy, cx = np.divmod(np.unique(cy * w + cx), w)
         near = nearest[cy, cx]
         gone = near < 0  # no occupied cell within the cut any more: the floor
         field[cy[gone] + pad, cx[gone] + pad] = self._floor32
@@ -220,9 +221,16 @@ class LikelihoodField:
         iy, ix = cy[~gone], cx[~gone]
         ny, nx = np.divmod(near[~gone], np.int32(w))
         self._evaluate(inputs, iy, ix, ny, nx, field, vx, vy)
-        forward_maximum_at(field, coarse, cy + pad, cx + pad, p.coarse_factor, np.zeros(shape, dtype=np.bool_))
+        forward_maximum_at(field, coarse, cy + pad, cx + pad, p.coarse_factor, mark_padded)
         return FieldArrays(inputs, arrays.fine, arrays.coarse, shape, n_occupied, arrays.vx, arrays.vy, nearest,
                            arrays.counts)
+
+    def _scratch(self, crop: tuple[int, int], padded: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All-False bool arrays of the crop's shape (two) and of the padded arrays' shape, kept between updates
+        (the compiled passes leave them all False)."""
+        if self._marks is None or self._marks[0].shape != crop or self._marks[2].shape != padded:
+            self._marks = (np.zeros(crop, np.bool_), np.zeros(crop, np.bool_), np.zeros(padded, np.bool_))
+        return self._marks
 
     @property
     def _floor32(self) -> np.float32:

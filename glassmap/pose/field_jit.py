@@ -215,20 +215,26 @@ def renew_nearest(occ: np.ndarray, nearest: np.ndarray, cy: np.ndarray, cx: np.n
 
 
 @_jit
-def cells_of_walls(nearest: np.ndarray, cy: np.ndarray, cx: np.ndarray, k: int, r: int, mark: np.ndarray,
-                   wall: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cells_of_walls(nearest: np.ndarray, cy: np.ndarray, cx: np.ndarray, k: int, r: int, skip: np.ndarray,
+                   mark: np.ndarray, wall: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The cells whose nearest occupied cell (``nearest``, as :func:`renew_nearest`; it lies within ``r``
-    cells) lies within ``k`` cells (Chebyshev) of one of the cells (cy, cx): rows and columns (int64).
-    ``mark``, ``wall``: (H, W) bool scratch, all False on entry and on return."""
+    cells) lies within ``k`` cells (Chebyshev) of one of the cells (cy, cx), but not the cells (flat indices)
+    ``skip``: rows and columns (int64). ``mark``, ``wall``: (H, W) bool scratch, all False on entry and on
+    return."""
     h, w = nearest.shape
     wy, wx = _window_cells(cy, cx, k, wall)
     for j in range(wy.shape[0]):
         wall[wy[j], wx[j]] = True
     ys, xs = _window_cells(cy, cx, k + r, mark)
+    flat = mark.ravel()
+    for j in range(skip.shape[0]):
+        flat[skip[j]] = True
     keep = np.zeros(ys.shape[0], np.bool_)
     for j in range(ys.shape[0]):
         f = nearest[ys[j], xs[j]]
-        keep[j] = f >= 0 and wall[f // w, f % w]
+        keep[j] = f >= 0 and not mark[ys[j], xs[j]] and wall[f // w, f % w]
+    for j in range(skip.shape[0]):
+        flat[skip[j]] = False
     for j in range(wy.shape[0]):
         wall[wy[j], wx[j]] = False
     return ys[keep], xs[keep]
@@ -273,5 +279,5 @@ def warm_up() -> None:
     changed_cells(flag, flag, flag, flag.copy())
     nearest = np.full((1, 1), -1, np.int32)
     renew_nearest(flag, nearest, one, one, 1, flag.copy())
-    cells_of_walls(nearest, one, one, 2, 1, flag.copy(), flag.copy())
+    cells_of_walls(nearest, one, one, 2, 1, one, flag.copy(), flag.copy())
     forward_maximum_at(layer, layer.copy(), one, one, 1, flag.copy())
