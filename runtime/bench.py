@@ -163,7 +163,7 @@ def _pinned_line(recording: str | Path, config, runs: int, beside: str) -> str:
 
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
 
-STAGES = (("pose", "pose (prediction + matching + fusion)"), ("likelihood_field", "likelihood field rebuild"),
+STAGES = (("pose", "pose (prediction + matching + fusion)"), ("likelihood_field", "likelihood field rebuild or update"),
           ("occupancy", "occupancy update (estimator)"), ("glass", "glass path (+ occupancy update by the mapper)"),
           ("total", "total (wall clock)"), ("cpu", "total (CPU time of the thread)"))
 

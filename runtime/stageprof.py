@@ -27,6 +27,7 @@ STAGES: tuple[tuple[int, str, str, str], ...] = (
     (1, "pose: prediction + key-scan matching + fusion", "glassmap.pose.estimator", "PoseEstimator.update"),
     (2, "scan matching (key scans)", "glassmap.pose.matcher", "CorrelativeMatcher.match"),
     (2, "likelihood field rebuild", "glassmap.pose.estimator", "PoseEstimator._rebuild_field"),
+    (2, "likelihood field update (key scans)", "glassmap.pose.estimator", "PoseEstimator._update_field"),
     (1, "registration sigma per beam", "glassmap.pose.estimator", "PoseEstimator.registration_sigma"),
     (1, "glass path (GlassMapper.process)", "glassmap.mapping", "GlassMapper.process"),
     (2, "incidence angles (split-merge)", "glassmap.mapping", "incidence_angles"),

@@ -17,7 +17,7 @@ comes from", has the findings.
 
 Usage: .venv/bin/python scripts/pose_map_bias.py WORLD [--seconds 20] [--seed 0] [--route short]
            [--no-range-noise] [--map-true-ranges] [--match-true-ranges] [--full-map]
-           [--field line_normals=0,pool=2] [--matcher voxel=0.1] [--refresh N] [--dump X:Y]
+           [--field line_normals=0,pool=2] [--matcher voxel=0.1] [--refresh N | --incremental] [--dump X:Y]
            [--no-mirror] [--exact-field] [--refine]
 
 --exact-field replaces, in this script only, the field the matcher's fine stage reads with the exact distance
@@ -64,9 +64,9 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--full-map", action="store_true", help="build the whole run's map first, then match")
     ap.add_argument("--field", default="", help="FieldParams overrides, e.g. line_normals=0,pool=2")
     ap.add_argument("--matcher", default="", help="MatcherConfig overrides, e.g. voxel=0.1,max_points=300")
-    ap.add_argument("--refresh", type=int, default=0,
-                    help="rebuild the field every N key scans instead of updating it at every key scan (0: the "
-                         "estimator's default, an update)")
+    ap.add_argument("--refresh", type=int, default=0, help="rebuild the field every N key scans (0: the estimator's)")
+    ap.add_argument("--incremental", action="store_true",
+                    help="update the field at every key scan (EstimatorConfig.field_incremental) instead")
     ap.add_argument("--dump", default="", help="X:Y (m): print the map and the field's vectors around this point")
     ap.add_argument("--no-mirror", action="store_true", help="simulate the laser without mirror images behind glass")
     ap.add_argument("--exact-field", action="store_true",
@@ -161,7 +161,9 @@ def main() -> int:
     cfg = EstimatorConfig(laser_mount=tuple(run.params["robot"]["laser_offset"]), background_field=False)
     cfg = replace(cfg, likelihood=_overrides(cfg.likelihood, args.field), matcher=_overrides(cfg.matcher, args.matcher))
     if args.refresh:
-        cfg = replace(cfg, field_incremental=False, field_refresh_scans=args.refresh)
+        cfg = replace(cfg, field_refresh_scans=args.refresh)
+    if args.incremental:
+        cfg = replace(cfg, field_incremental=True)
     est = PoseEstimator(cfg)
     g = est.occupancy.grid
     segs = np.asarray(world.segments, dtype=np.float64) if args.exact_field else None

@@ -3,7 +3,7 @@ and the estimator: where the start-up bias comes from (docs/pose.md, "Start-up b
 
 Usage: .venv/bin/python scripts/pose_startup_bias.py WORLD [--seconds 20] [--seed 0]
            [--variants default,perfect-odometry,no-mirror,no-range-noise,every-scan,sigma-hit-5cm,
-                       field-every-1,field-every-2,field-every-10]
+                       field-every-1,field-every-2,field-every-10,field-incremental]
 
 Prints, per variant, the mean along-track error (estimate minus truth, m -> cm, positive = ahead) over the
 second half of the window and at its end. Use validation worlds (seeds 1000-1999), never test worlds.
@@ -25,7 +25,7 @@ from glassmap.sim.robot import OdometryNoise
 from glassmap.sim.world import load_world
 
 VARIANTS = ("default", "perfect-odometry", "no-mirror", "no-range-noise", "every-scan", "sigma-hit-5cm",
-            "field-every-1", "field-every-2", "field-every-10")
+            "field-every-1", "field-every-2", "field-every-10", "field-incremental")
 
 
 def _first(run, seconds: float):
@@ -51,9 +51,10 @@ def main() -> int:
     base = EstimatorConfig()
     est = {"every-scan": replace(base, keyframe_distance=0.0, keyframe_angle=0.0),
            "sigma-hit-5cm": replace(base, likelihood=replace(base.likelihood, sigma_hit=0.05)),
-           "field-every-1": replace(base, field_incremental=False, field_refresh_scans=1),
-           "field-every-2": replace(base, field_incremental=False, field_refresh_scans=2),
-           "field-every-10": replace(base, field_incremental=False, field_refresh_scans=10)}
+           "field-every-1": replace(base, field_refresh_scans=1),
+           "field-every-2": replace(base, field_refresh_scans=2),
+           "field-every-10": replace(base, field_refresh_scans=10),
+           "field-incremental": replace(base, field_incremental=True)}
     runs: dict[str, object] = {}
     for name in args.variants.split(","):
         if name not in VARIANTS:

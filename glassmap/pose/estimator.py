@@ -107,7 +107,7 @@ class EstimatorConfig:
         (:meth:`LikelihoodField.refresh`: the field a rebuild of the same crop gives); it is rebuilt around
         the robot once the robot is ``field_recentre`` (m, in x or y) from the crop's centre (on the next
         non-key scan, as the periodic rebuild below), and on a key scan when the robot nears the crop's
-        edge or the grid grew.
+        edge or the grid grew. Off by default: what it gains and loses is in docs/pose.md, "Session 37".
     field_refresh_scans: without ``field_incremental``, the likelihood field is rebuilt from the grid after
         this many key scans were integrated, on the next scan (a non-key scan, so the cost does not add to
         a key scan's), and on a key scan when the robot nears the edge of the field's crop or the grid grew.
@@ -175,7 +175,7 @@ class EstimatorConfig:
     keyframe_distance: float = 0.05
     keyframe_angle: float = float(np.radians(2.0))
     keyframe_max_scans: int = 20
-    field_incremental: bool = True
+    field_incremental: bool = False
     field_recentre: float = 1.0
     field_refresh_scans: int = 10
     background_field: bool = True

@@ -18,8 +18,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from glassmap.grid import OccupancyGrid
-from glassmap.pose.field_jit import (cells_of_walls, changed_cells, forward_maximum, forward_maximum_at, near_cells, neighbour_sums,
-                                     renew_nearest, unique_cells)
+from glassmap.pose.field_jit import (cells_of_walls, changed_cells, forward_maximum, forward_maximum_at, near_cells,
+                                     neighbour_sums, renew_nearest, unique_cells)
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)

@@ -170,9 +170,8 @@ def test_a_match_at_an_alias_along_a_corridor_leaves_the_heading_alone():
         out = _drive_in_box(est, 80, segs=corridor(40.0))
         return float(np.mean([abs(np.degrees(wrap_angle(e.pose[2] - t[2]))) for e, t in out[28:]]))
 
-    slid, unslid = heading_error(True), heading_error(False)
-    assert slid < 0.12
-    assert unslid > max(0.15, 4 * slid)  # what the alias does unslid
+    assert heading_error(True) < 0.12
+    assert heading_error(False) > 0.25  # what the alias does unslid
 
 
 def test_an_odometry_jump_is_gated_not_mapped_and_the_track_is_reported_lost():
