@@ -242,8 +242,9 @@ def main() -> int:
             est.ekf.pose = truth.copy()  # _store_hits places the end points at the filter's pose
             est._store_hits(scan.angles, map_ranges, scan.geometry.range_max)
             since += 1
-            if (not est.field.ready or (not cfg.field_incremental and since >= cfg.field_refresh_scans)
-                    or np.max(np.abs(truth[:2] - est.field.center)) > cfg.field_recentre):
+            if not est.field.ready or (
+                    np.max(np.abs(truth[:2] - est.field.center)) > cfg.field_recentre if cfg.field_incremental
+                    else since >= cfg.field_refresh_scans):  # as the estimator: periodic, or re-centred
                 rebuild(truth[:2])
                 since = 0
             elif cfg.field_incremental:  # as the estimator: the field follows the map at every key scan
