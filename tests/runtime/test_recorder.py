@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rosbags.highlevel import AnyReader
 
 from glassmap.types import PoseEstimate
@@ -75,6 +77,51 @@ def test_occupancy_grid_values():
     msg = M.occupancy_grid_msg(p, (0.0, 0.0), 0.05, 0)
     assert list(msg.data) == [-1, 90, 10, -1]
     assert (msg.info.width, msg.info.height) == (2, 1 * 2)
+
+
+def _reference_occupancy_data(p: np.ndarray) -> np.ndarray:
+    """/map cells by the rule, over the whole map in float64: 0..100, -1 unknown (NaN or within 1e-3 of 0.5)."""
+    p = np.asarray(p, dtype=np.float64)
+    data = np.full(p.shape, -1, dtype=np.int8)
+    known = np.isfinite(p) & (np.abs(p - 0.5) > 1e-3)
+    data[known] = np.clip(np.round(p[known] * 100), 0, 100).astype(np.int8)
+    return data.reshape(-1)
+
+
+def _reference_glass_cells(c: np.ndarray) -> np.ndarray:
+    """/glass/map cells by the rule, over the whole map: p_glass, then blue -> gray -> red, alpha 0 off walls."""
+    c = np.asarray(c, dtype=np.float32)
+    known = np.isfinite(c)
+    pk = np.clip(np.where(known, c, 0.5), 0.0, 1.0)
+    lo = pk < 0.5
+    t = np.where(lo, pk / 0.5, (pk - 0.5) / 0.5)
+    rgba = np.stack([np.where(lo, 128 * t, 128 + 127 * t), np.where(lo, 128 * t, 128 * (1 - t)),
+                     np.where(lo, 255 - 127 * t, 128 * (1 - t))], axis=-1).astype(np.uint8)
+    cells = np.zeros(c.shape + (8,), np.uint8)
+    cells[..., :4] = c[..., None].view(np.uint8)
+    cells[..., 4:7] = rgba
+    cells[..., 7] = np.where(known, 255, 0)
+    return cells.reshape(-1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(0, 2**32 - 1), st.booleans())
+def test_map_messages_equal_the_whole_map_rule(h, w, seed, float64):
+    """The map messages are built from the known cells only; the bytes are those of the rule applied to
+    every cell (unknown, exactly 0.5, just either side of the 1e-3 band, NaN, outside 0..1)."""
+    rng = np.random.default_rng(seed)
+    p = rng.random((h, w)).astype(np.float32)
+    p[rng.random((h, w)) < 0.3] = 0.5
+    p[rng.random((h, w)) < 0.1] = np.nan
+    near = rng.random((h, w)) < 0.1
+    p[near] = (0.5 + rng.choice([-1.0, 1.0], near.sum()) * rng.uniform(0.9e-3, 1.1e-3, near.sum())).astype(np.float32)
+    if float64:
+        p = p.astype(np.float64)
+    assert np.array_equal(np.asarray(M.occupancy_grid_msg(p, (0.0, 0.0), 0.05, 0).data), _reference_occupancy_data(p))
+    c = rng.uniform(-0.2, 1.2, (h, w)).astype(np.float32)
+    c[rng.random((h, w)) < 0.5] = np.nan
+    c[rng.random((h, w)) < 0.05] = 0.5
+    assert np.array_equal(np.asarray(M.glass_grid_msg(c, (0.0, 0.0), 0.05, 0).data), _reference_glass_cells(c))
 
 
 def test_full_queue_drops_are_counted(tmp_path):
