@@ -17,12 +17,23 @@ def test_growth_pads_all_layers_and_keeps_world_positions():
     g = MapGrid(resolution=0.1, origin=(0.0, 0.0), shape=(10, 10), grow_step_m=1.0)
     g.add_layer("a", fill=0.0)
     g.add_layer("b", fill=0.5)
+    g.add_layer("c", fill=np.nan, dtype=np.float64)
+    g.add_layer("d", fill=False, dtype=bool)
     g["a"][g.world_to_cell(np.array([0.55, 0.25]))[::-1].tolist()[0], 5] = 7.0
+    g["b"][:] = np.arange(100, dtype=np.float32).reshape(10, 10)
+    g["d"][3, 4] = True
     assert g.ensure_contains(np.array([-0.5, -0.05]), np.array([0.5, 0.5]))
     assert g.shape == (20, 20) and g["b"].shape == (20, 20)
     assert np.allclose(g.origin, [-1.0, -1.0])
     ix, iy = g.world_to_cell(np.array([0.55, 0.25]))
     assert g["a"][iy, ix] == 7.0 and g["b"][0, 0] == 0.5
+    old = (slice(10, 20), slice(10, 20))  # the old cells, 1 m (10 cells) in from the new corner
+    assert np.array_equal(g["b"][old], np.arange(100, dtype=np.float32).reshape(10, 10))
+    new = np.ones((20, 20), bool)
+    new[old] = False
+    assert (g["a"][new] == 0).all() and (g["b"][new] == 0.5).all() and np.isnan(g["c"]).all()
+    assert [g[k].dtype for k in "abcd"] == [np.float32, np.float32, np.float64, bool]
+    assert g["d"].sum() == 1 and g["d"][13, 14]
     assert not g.ensure_contains(np.array([0.0, 0.0]), np.array([0.5, 0.5]))
 
 
