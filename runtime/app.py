@@ -260,29 +260,28 @@ class Runtime:
         return self.summary
 
     async def _connect(self) -> None:
+        """Connect the base, then the laser: the laser streams from its connect on, and scans that arrived
+        during the base's handshake (tens of milliseconds, more under load) would reach the processing queue
+        at once when the laser task starts, more than it holds at start-up."""
         from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
         from drivers.pioneer.client import PioneerClient, PioneerSettings
 
         cfg = self.config
+        base_url = cfg.resolved_base_url()
+        if base_url.lower() not in ("", "none"):
+            btaps = [self.sink.tap("base", base_url)] if self.sink is not None else []
+            popts = {"max_v": cfg.base.max_v, "max_omega": cfg.base.max_omega, **self.pioneer_options}
+            self.base = await PioneerClient.connect(base_url, PioneerSettings(**popts), taps=btaps,
+                                                    enable_motors=cfg.base.enable_motors)
+            log.info("base connected: %s (motors %s)", base_url, "enabled" if cfg.base.enable_motors else "disabled")
         laser_url = cfg.resolved_laser_url()
         taps = [self._rx_tap("laser")]
         if self.sink is not None:
             taps.append(self.sink.tap("laser", laser_url))
         multi = {"on": True, "off": False}.get(cfg.laser.multi_echo, self.processor.wants_echoes)
         opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, "multi_echo": multi, **self.hokuyo_options}
-        self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)
+        self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)  # failing: run() stops
         log.info("laser connected: %s", laser_url)
-        base_url = cfg.resolved_base_url()
-        if base_url.lower() not in ("", "none"):
-            btaps = [self.sink.tap("base", base_url)] if self.sink is not None else []
-            popts = {"max_v": cfg.base.max_v, "max_omega": cfg.base.max_omega, **self.pioneer_options}
-            try:
-                self.base = await PioneerClient.connect(base_url, PioneerSettings(**popts), taps=btaps,
-                                                        enable_motors=cfg.base.enable_motors)
-            except BaseException:
-                await self.laser.close()
-                raise
-            log.info("base connected: %s (motors %s)", base_url, "enabled" if cfg.base.enable_motors else "disabled")
 
     def _rx_tap(self, device: str):
         def tap(direction: str, host_time: float, data: bytes) -> None:
