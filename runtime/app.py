@@ -260,9 +260,9 @@ class Runtime:
         return self.summary
 
     async def _connect(self) -> None:
-        """Connect the base, then the laser: the laser streams from its connect on, and scans that arrived
-        during the base's handshake (tens of milliseconds, more under load) would reach the processing queue
-        at once when the laser task starts, more than it holds at start-up."""
+        """Connect the base, then the laser. The laser streams from its connect on and its scans wait until
+        the laser task starts; connected first, the scans of the base's handshake would reach the processing
+        queue at once. If either fails, run()'s clean-up closes what did connect (the base stopped)."""
         from drivers.hokuyo.client import HokuyoClient, HokuyoSettings
         from drivers.pioneer.client import PioneerClient, PioneerSettings
 
@@ -280,7 +280,7 @@ class Runtime:
             taps.append(self.sink.tap("laser", laser_url))
         multi = {"on": True, "off": False}.get(cfg.laser.multi_echo, self.processor.wants_echoes)
         opts = {"cluster": cfg.laser.cluster, "skip": cfg.laser.skip, "multi_echo": multi, **self.hokuyo_options}
-        self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)  # failing: run() stops
+        self.laser = await HokuyoClient.connect(laser_url, HokuyoSettings(**opts), taps=taps)
         log.info("laser connected: %s", laser_url)
 
     def _rx_tap(self, device: str):
