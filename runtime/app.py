@@ -29,7 +29,7 @@ from glassmap.types import Odometry, PoseEstimate
 from runtime.config import RuntimeConfig
 from runtime.live import Fanout, LiveView, start_live_view
 from runtime.map_worker import MapWorker, map_messages
-from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan
+from runtime.messages import TimeBase, as_recorded_odometry, as_recorded_scan, warm_up_serializers
 from runtime.pipeline import ProcessingStage, ScanResult, StageStats
 from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder, RecorderError
@@ -198,8 +198,7 @@ class Runtime:
             with handle_signals(stop):
                 # before the devices connect, so that the first scans are not delayed by start-up work
                 await self.stage.call(self.processor.warm_up)
-                # the ROS type store (~0.1-0.2 s to build) before the first odometry message needs it
-                as_recorded_odometry(Odometry(stamp=time.monotonic(), x=0.0, y=0.0, yaw=0.0), self.time_base)
+                warm_up_serializers()  # the ROS type store and its CDR code, before the first messages need them
                 await self.map_worker.start()
                 freeze_startup()  # start-up objects out of the garbage collector's way (runtime.tuning)
                 await self._connect()

@@ -84,6 +84,14 @@ def typestore() -> Typestore:
     return ts
 
 
+def warm_up_serializers() -> None:
+    """Build the type store and generate the CDR code of every recorded type now: generated at a type's first
+    message instead, in the recorder's thread, it holds the GIL while the first scans wait."""
+    ts = typestore()
+    for name in sorted(set(TOPICS.values())):
+        ts.get_msgdef(name)
+
+
 def msgdef(msgtype: str) -> str:
     """The ``ros2msg`` schema text of a type, dependencies appended (the MCAP ROS 2 profile format)."""
     return typestore().generate_msgdef(msgtype, ros_version=2)[0]
