@@ -35,7 +35,7 @@ from runtime.processor import MappingProcessor
 from runtime.recorder import McapRecorder, RecorderError
 from runtime.shutdown import StopRequest, handle_signals
 from runtime.sink import RecordingSink, RosoutHandler, recording_metadata
-from runtime.tuning import freeze_startup, thaw
+from runtime.tuning import freeze_startup, release_heap_reserve, reserve_heap, thaw
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +194,7 @@ class Runtime:
                                      max_scan_age=cfg.pipeline.max_scan_age, odom_buffer=cfg.pipeline.odom_buffer,
                                      on_result=self._on_result, nice=cfg.pipeline.nice)
         failure: BaseException | None = None
+        reserved = False
         try:
             with handle_signals(stop):
                 # before the devices connect, so that the first scans are not delayed by start-up work
@@ -201,6 +202,7 @@ class Runtime:
                 warm_up_serializers()  # the ROS type store and its CDR code, before the first messages need them
                 await self.map_worker.start()
                 freeze_startup()  # start-up objects out of the garbage collector's way (runtime.tuning)
+                reserved = reserve_heap(cfg.pipeline.memory_reserve << 20)  # pages for the first grid growths
                 await self._connect()
                 tasks = [asyncio.create_task(self._laser_task(), name="laser"),
                          asyncio.create_task(self.stage.run(), name="processing"),
@@ -231,6 +233,8 @@ class Runtime:
                     await self._finish_processing(proc)
         finally:
             thaw()
+            if reserved:
+                release_heap_reserve()
             await self._close_devices()
             if self.stage is not None:
                 self.stage.shutdown()

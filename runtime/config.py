@@ -149,6 +149,8 @@ class PipelineConfig:
     nice: int = setting(0, "niceness of the scan-processing thread (Linux; -20 first .. 19 last): below 0 puts "
                         "the scans before other programs on a busy laptop; needs CAP_SYS_NICE or 'ulimit -e' "
                         "(refused: a warning, default priority)")
+    memory_reserve: int = setting(96, "MiB of memory written once at start-up and kept by the allocator (glibc), "
+                                      "so the grid growing at the first scans does not wait for new pages; 0 = off")
 
 
 @dataclass
@@ -225,6 +227,8 @@ class RuntimeConfig:
             raise ConfigError(f"pipeline.nice must be in -20 .. 19, got {self.pipeline.nice}")
         if self.pipeline.max_scan_age <= 0:
             raise ConfigError("pipeline.max_scan_age must be > 0 s")
+        if self.pipeline.memory_reserve < 0:
+            raise ConfigError(f"pipeline.memory_reserve must be >= 0 MiB, got {self.pipeline.memory_reserve}")
         if self.output.live:
             from runtime.output_args import LiveViewError, parse_address
 

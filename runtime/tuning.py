@@ -19,6 +19,13 @@ garbage collector's way.
   of freed numpy buffers that way. :func:`one_malloc_arena` makes every thread share one arena (small
   allocations still go through each thread's cache, and most of the runtime's allocation happens under
   the interpreter lock anyway).
+- Memory written for the first time costs a page fault per page, and in a virtual machine whose host takes
+  freed guest memory back (free page reporting) each such fault also waits for the host. The grid grows at
+  the first scans (every layer copied into new, larger arrays: tens of MiB), and glibc serves buffers that
+  large from fresh mappings and gives freed memory back at once, so the processing thread stalls while
+  scans queue up. :func:`reserve_heap` is the usual real-time Linux recipe: large buffers from the heap
+  (``M_MMAP_MAX`` 0), free() keeps memory (no ``M_TRIM_THRESHOLD``), and a reserve written once at
+  start-up, so the first growths reuse pages already mapped; :func:`release_heap_reserve` undoes it.
 - numba loads the compiled kernels (from its on-disk cache) through LLVM, a 170 MB shared library
   (llvmlite's), at start-up; after that the kernels run as plain machine code and LLVM's pages are not
   touched again (unless a kernel meets new argument types and is compiled). Linux kernels that map file
@@ -140,7 +147,57 @@ def thaw() -> None:
     gc.unfreeze()
 
 
-M_ARENA_MAX = -8  # glibc's mallopt parameter number
+M_ARENA_MAX, M_TRIM_THRESHOLD, M_MMAP_MAX = -8, -1, -4  # glibc's mallopt parameter numbers
+GLIBC_TRIM_THRESHOLD, GLIBC_MMAP_MAX = 128 * 1024, 65536  # glibc's defaults
+
+
+def _libc():
+    """glibc's allocator functions with their C types, or None (not glibc)."""
+    try:
+        libc = ctypes.CDLL(None)
+        fns = libc.mallopt, libc.malloc, libc.free, libc.memset, libc.malloc_trim
+    except (OSError, AttributeError):
+        return None
+    mallopt, malloc, free, memset, trim = fns
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    malloc.argtypes, malloc.restype = (ctypes.c_size_t,), ctypes.c_void_p
+    free.argtypes, free.restype = (ctypes.c_void_p,), None
+    memset.argtypes, memset.restype = (ctypes.c_void_p, ctypes.c_int, ctypes.c_size_t), ctypes.c_void_p
+    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    return libc
+
+
+def reserve_heap(nbytes: int) -> bool:
+    """Keep freed memory in this process (glibc: large buffers from the heap, free() gives nothing back) and
+    write ``nbytes`` of heap once, then free it, so the next buffers reuse pages already mapped. With one
+    malloc arena (:func:`one_malloc_arena`) every thread reuses them. Returns False with ``nbytes`` 0 or
+    without glibc; undo with :func:`release_heap_reserve`."""
+    if nbytes < 0:
+        raise ValueError(f"nbytes must be >= 0, got {nbytes}")
+    libc = _libc() if nbytes else None
+    if libc is None:
+        return False
+    if libc.mallopt(M_MMAP_MAX, 0) != 1 or libc.mallopt(M_TRIM_THRESHOLD, -1) != 1:  # -1: never trim
+        release_heap_reserve()
+        return False
+    block = libc.malloc(nbytes)
+    if not block:
+        release_heap_reserve()
+        return False
+    libc.memset(block, 0, nbytes)
+    libc.free(block)
+    return True
+
+
+def release_heap_reserve() -> None:
+    """glibc's default limits again (buffers from fresh mappings, freed memory given back) and the heap's
+    free memory given back now (``malloc_trim``)."""
+    libc = _libc()
+    if libc is None:
+        return
+    libc.mallopt(M_MMAP_MAX, GLIBC_MMAP_MAX)
+    libc.mallopt(M_TRIM_THRESHOLD, GLIBC_TRIM_THRESHOLD)
+    libc.malloc_trim(0)
 
 
 def one_malloc_arena() -> bool:

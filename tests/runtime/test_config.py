@@ -62,6 +62,7 @@ def test_serial_laser_and_tcp_base():
     ("[mapping]\nsurface_margin = -0.1\n", "mapping.hit_margin and surface_margin must be >= 0 m"),
     ("[base]\nmax_sigma = -1\n", r"base.lost_hold \(s\) and base.max_sigma \(m\) must be >= 0"),
     ("[pipeline]\nnice = -30\n", r"pipeline.nice must be in -20 .. 19, got -30"),
+    ("[pipeline]\nmemory_reserve = -1\n", r"pipeline.memory_reserve must be >= 0 MiB, got -1"),
     ("[laser\n", r"robot.toml: .*line 1"),
 ])
 def test_bad_files_name_file_key_and_problem(tmp_path, text, match):
