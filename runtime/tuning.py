@@ -190,7 +190,8 @@ def reserve_heap(nbytes: int) -> bool:
 
 
 def release_heap_reserve() -> None:
-    """glibc's default limits again (buffers from fresh mappings, freed memory given back) and the heap's
+    """glibc's default limits again (large buffers from fresh mappings, freed memory given back; glibc's
+    adjustment of the mapping threshold to the buffers freed stays off once a limit was set) and the heap's
     free memory given back now (``malloc_trim``)."""
     libc = _libc()
     if libc is None:
