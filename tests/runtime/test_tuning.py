@@ -202,6 +202,7 @@ def _page_out_own_library(tmp_path: Path) -> None:
 
 _RESERVE = """
 import ctypes, resource, sys
+ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: 4 KiB pages, one fault each, whatever THP's setting
 import numpy as np
 from runtime.tuning import release_heap_reserve, reserve_heap
 class MallInfo2(ctypes.Structure):
