@@ -105,8 +105,8 @@ class MapGrid:
             return False
         shape = (h + pad_bottom + pad_top, w + pad_left + pad_right)
         for name, arr in self._layers.items():
-            # np.zeros takes zeroed pages that the OS maps only when they are first written: the new area
-            # costs nothing at the growth (np.pad wrote all of it while the scans waited)
+            # np.zeros (calloc) zeroes only what the allocator cannot hand over zeroed (fresh pages are, until
+            # first written); np.pad wrote the whole new area while the scans waited
             fill = self._fills[name]
             grown = np.zeros(shape, arr.dtype) if fill == 0 else np.full(shape, fill, arr.dtype)
             grown[pad_bottom:pad_bottom + h, pad_left:pad_left + w] = arr

@@ -105,10 +105,8 @@ def release_memory() -> None:
     memory back to the system (glibc ``malloc_trim``), and the JIT compiler's pages
     (:func:`release_compiler_pages`)."""
     gc.collect()
-    try:
-        ctypes.CDLL(None).malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc
-        pass
+    if (libc := _libc()) is not None:
+        libc.malloc_trim(0)
     release_compiler_pages()
 
 
@@ -206,9 +204,5 @@ def one_malloc_arena() -> bool:
     explicit setting wins). Returns True if set; False without glibc (musl, macOS) or with the variable."""
     if "MALLOC_ARENA_MAX" in os.environ:
         return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return mallopt(M_ARENA_MAX, 1) == 1
+    libc = _libc()
+    return libc is not None and libc.mallopt(M_ARENA_MAX, 1) == 1
