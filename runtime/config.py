@@ -142,7 +142,8 @@ class MappingConfig:
 class PipelineConfig:
     """Processing stage settings."""
 
-    queue_size: int = setting(4, "scans waiting for processing; when full the oldest is dropped (and counted)")
+    queue_size: int = setting(8, "scans waiting for processing (8 = 200 ms at 40 Hz: a laser or event loop that "
+                              "stalls and then delivers a burst); when full the oldest is dropped (and counted)")
     max_scan_age: float = setting(0.5, "a scan older than this (s, host clock) when processing starts is dropped "
                                   "(and counted) as stale")
     odom_buffer: int = setting(400, "odometry messages kept for interpolation")

@@ -8,7 +8,7 @@ the maps online, records everything to MCAP, and at the end the glass confidence
 world's blueprint (with ``mapping.loop_closure``, every accepted loop closure is scored against the true
 poses too and listed in ``closures.csv``). ``speed`` > 1 runs the emulators (and so the whole demo) faster
 than real time; the processing queue then holds ``speed`` times as many scans (``pipeline.queue_size`` is a
-number of scans at the laser's real rate, 40 Hz: 4 scans = 100 ms), so that it spans the same time as on the
+number of scans at the laser's real rate, 40 Hz: 8 scans = 200 ms), so that it spans the same time as on the
 robot.
 """
 

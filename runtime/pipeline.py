@@ -80,7 +80,7 @@ class ProcessingStage:
     :meth:`run` starts the processing thread and returns when it ends; :meth:`call` runs other work on
     the processor (map copies, the warm-up) between two scans, before, during or after :meth:`run`."""
 
-    def __init__(self, processor: ScanProcessor, *, queue_size: int = 4, max_scan_age: float = 0.5,
+    def __init__(self, processor: ScanProcessor, *, queue_size: int = 8, max_scan_age: float = 0.5,
                  odom_buffer: int = 400, on_result: Callable[[ScanResult], None] | None = None,
                  clock: Callable[[], float] = time.monotonic, nice: int = 0) -> None:
         if queue_size < 1:

@@ -8,6 +8,7 @@ import threading
 
 import pytest
 
+from runtime.config import PipelineConfig
 from runtime.pipeline import ProcessingError, ProcessingStage, ScanResult
 from tests.runtime.factories import make_odom, make_scan
 
@@ -50,6 +51,24 @@ async def test_processes_in_order_with_the_odometry_that_arrived_before_each_sca
     assert results[0].bytes_in_time == 0.25
     assert stage.stats.scans_processed == 2 and stage.stats.dropped_overflow == stage.stats.dropped_stale == 0
     assert stage.stats.most_waiting == 2
+    stage.shutdown()
+
+
+async def test_default_queue_keeps_a_burst_of_five_scans_that_arrive_while_one_is_processed():
+    """A link (or event loop) silent for 125 ms at 40 Hz then delivers five scans at once; the default queue
+    keeps them all (the queue of 4 scans it replaced dropped the oldest)."""
+    proc = Recorder(block=True)
+    stage = ProcessingStage(proc, queue_size=PipelineConfig().queue_size, max_scan_age=1e9, clock=lambda: 0.0)
+    runner = asyncio.create_task(stage.run())
+    stage.submit_scan(make_scan(0.0, 0))
+    await asyncio.get_running_loop().run_in_executor(None, proc.started.wait, 5)  # scan 0 is in the processor
+    for seq in range(1, 6):
+        stage.submit_scan(make_scan(0.025 * seq, seq))
+    proc.release.set()
+    stage.close()
+    await runner
+    assert [c[0] for c in proc.calls] == [0, 1, 2, 3, 4, 5]
+    assert stage.stats.dropped_overflow == 0 and stage.stats.most_waiting == 5
     stage.shutdown()
 
 
