@@ -9,6 +9,8 @@
 3. Peak resident memory: of the live runtime, of each replay (each run's own peak: the kernel's high-water
    mark is reset between the runs, :func:`reset_peak_rss`), of this whole process (the three runs one after
    the other) and of the largest child process (emulated devices, map worker).
+``live_runs`` > 1 repeats the live run (a scan dropped now and then under load shows only over many runs):
+one line per run and a summary; the replays then use the last run's recording.
 ``stages``: also the CPU time of each stage of the processing (:mod:`runtime.stageprof`).
 ``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
 says how many. ``config``: the runtime's settings (``--config``, ``--mapping.*`` ... flags), e.g.
@@ -27,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +164,36 @@ def _pinned_line(recording: str | Path, config, runs: int, beside: str) -> str:
             f"workload on that core before each run {', '.join(f'{r:.0f}' for r in refs)} ms")
 
 
+@dataclass
+class LiveRun:
+    """The figures of one live run (``glassmap bench --live-runs N``)."""
+
+    scans: int  # scans received
+    dropped_overflow: int  # dropped because the processing queue was full
+    dropped_stale: int  # dropped because they were older than pipeline.max_scan_age
+    most_waiting: int  # the most scans waiting for processing at once
+    p99_ms: float  # latency, scan bytes in -> maps updated
+    reference_ms: float  # the machine's speed just after the run (reference_workload_ms)
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_overflow + self.dropped_stale
+
+
+def live_runs_lines(runs: list[LiveRun], queue_size: int) -> list[str]:
+    """One line per live run, then a summary over the runs: how many dropped a scan, the p99 range."""
+    n = len(runs)
+    lines = [f"live run {i} of {n}: {r.scans} scans, dropped {r.dropped} (queue full {r.dropped_overflow}, stale "
+             f"{r.dropped_stale}), most waiting at once {r.most_waiting}, latency p99 {r.p99_ms:.2f} ms; reference "
+             f"workload after it {r.reference_ms:.0f} ms" for i, r in enumerate(runs, 1)]
+    p99 = [r.p99_ms for r in runs]
+    with_drops = sum(r.dropped > 0 for r in runs)
+    lines.append(f"{n} live runs: {with_drops} of {n} dropped a scan ({sum(r.dropped for r in runs)} scans in all); "
+                 f"latency p99 {min(p99):.2f}-{max(p99):.2f} ms (median {float(np.median(p99)):.2f}); most scans "
+                 f"waiting at once {max(r.most_waiting for r in runs)} (the queue holds {queue_size})")
+    return lines
+
+
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
 
 STAGES = (("pose", "pose (prediction + matching + fusion)"), ("likelihood_field", "likelihood field rebuild or update"),
@@ -180,22 +213,25 @@ def _stage_lines(stages: dict, prefix: str) -> list[str]:
 
 def run_bench(world: str = "office", duration: float = 20.0, recording: str | None = None,
               out_dir: str = "out/bench", load: int = 0, stages: bool = False, config=None,
-              pinned_runs: int = 3) -> str:
+              pinned_runs: int = 3, live_runs: int = 1) -> str:
     """config: a :class:`runtime.config.RuntimeConfig` for the live run and, with ``recording``, its replays
     (default: the defaults; a recording made here is replayed with its recorded settings). pinned_runs:
-    replays pinned to one core (their median is the figure; 0: none)."""
+    replays pinned to one core (their median is the figure; 0: none). live_runs: live runs (>= 1; ignored with
+    ``recording``), each recorded in ``out_dir``/live-N when more than one."""
     from runtime.load import BusyProcesses
 
+    if live_runs < 1:
+        raise ValueError(f"live_runs must be >= 1, got {live_runs}")
     with BusyProcesses(load) as busy:
         lines = _run(world, duration, recording, out_dir, f"{load} busy process{'es' if load != 1 else ''} beside it",
-                     stages, config, pinned_runs)
+                     stages, config, pinned_runs, live_runs)
         if busy.running != load:
             lines.append(f"warning: only {busy.running} of the {load} busy processes were still running at the end")
     return "\n".join(lines)
 
 
 def _run(world: str, duration: float, recording: str | None, out_dir: str, beside: str, stages: bool,
-         config=None, pinned_runs: int = 3) -> list[str]:
+         config=None, pinned_runs: int = 3, live_runs: int = 1) -> list[str]:
     from runtime.config import PipelineConfig
     from runtime.replay import replay_file
     from runtime.tuning import release_memory
@@ -214,11 +250,27 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         from runtime.demo import DemoOptions, run_demo
 
         replay_config = None  # the recording's own settings (start pose, loop closure, ...)
-        res = asyncio.run(run_demo(DemoOptions(world=world, speed=1.0, duration=duration, out_dir=str(out),
-                                               progress=True, config=config)))
+        runs: list[LiveRun] = []
+        live_peak = 0.0
+        for i in range(1, live_runs + 1):
+            separate = separate and reset_peak_rss()
+            run_out = out if live_runs == 1 else out / f"live-{i}"
+            res = asyncio.run(run_demo(DemoOptions(world=world, speed=1.0, duration=duration, out_dir=str(run_out),
+                                                   progress=True, config=config)))
+            live_peak = max(live_peak, peak_rss_mib())
+            st = res.summary.stages
+            runs.append(LiveRun(st.scans_received, st.dropped_overflow, st.dropped_stale, st.most_waiting,
+                                float(np.percentile(np.asarray(res.latency) * 1e3, 99)) if res.latency else float("nan"),
+                                reference_workload_ms()))
+            if i < live_runs:
+                del res  # its runtime and maps are gone before the next run starts
+                release_memory()
+        if live_runs > 1:
+            lines += live_runs_lines(runs, pipeline.queue_size)
         s = res.summary
         recording = res.recording
-        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time, {beside}): {s.stages.summary()}")
+        last = f", the last of {live_runs}" if live_runs > 1 else ""
+        lines.append(f"live run ({world}, {duration:g} s at 40 Hz, real time, {beside}{last}): {s.stages.summary()}")
         lines.append(f"  latency scan bytes in -> maps updated: {_ms(res.latency)}")
         lines.append(f"  most scans waiting for processing at once: {s.stages.most_waiting} "
                      f"(the queue holds {pipeline.queue_size}: --pipeline.queue_size)")
@@ -227,9 +279,9 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
             lines.append(f"  the same after the first {STARTUP_S:g} s (start-up: first likelihood fields, map "
                          f"growth):  {_ms(res.latency[skip:])}")
         lines += _stage_lines(res.stages, "live: ")
-        lines.append(f"  machine speed at the end of the live run: reference workload {reference_workload_ms():.0f} ms "
+        lines.append(f"  machine speed at the end of the live run: reference workload {runs[-1].reference_ms:.0f} ms "
                      "(at its start: the first line)")
-        peaks["live runtime"] = peak_rss_mib()
+        peaks["live runtime" if live_runs == 1 else f"live runtime (the largest of {live_runs} runs)"] = live_peak
         release_memory()
     for source in ("messages", "raw"):
         separate = separate and reset_peak_rss()

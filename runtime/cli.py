@@ -173,6 +173,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "that anyone can reproduce")
     b.add_argument("--stages", action="store_true", help="also replay the recording once more with every stage of "
                    "the processing timed (CPU time of the thread: holds on a busy machine) and print the table")
+    b.add_argument("--live-runs", type=_positive_int, default=1, metavar="N",
+                   help="repeat the live run N times (a scan dropped now and then under --load shows only over many "
+                   "runs): a line per run and a summary; the replays use the last run's recording (in OUT/live-N)")
     b.add_argument("--pinned-runs", type=_non_negative_int, default=3, metavar="N",
                    help="replays of the raw bytes pinned to one core (Linux), each in its own process; the median "
                    "is the one-core figure (0: none)")
@@ -352,14 +355,23 @@ def cmd_replay(args) -> int:
     return 1 if failed else 0
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {n}")
-    return n
+def _int_at_least(minimum: int):
+    """An argparse type: a whole number >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}") from None
+        if n < minimum:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {n}")
+        return n
+
+    return parse
+
+
+_non_negative_int = _int_at_least(0)
+_positive_int = _int_at_least(1)
 
 
 def cmd_bench(args) -> int:
@@ -371,7 +383,8 @@ def cmd_bench(args) -> int:
 
         base = recorded_config(args.recording)
     print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
-                    load=args.load, stages=args.stages, config=_config(args, base), pinned_runs=args.pinned_runs))
+                    load=args.load, stages=args.stages, config=_config(args, base), pinned_runs=args.pinned_runs,
+                    live_runs=args.live_runs))
     return 0
 
 

@@ -57,3 +57,33 @@ def test_the_one_core_figure_is_the_median_of_the_pinned_runs(tmp_path):
     rates = sorted(int(g) for g in m.groups()[:3])
     assert int(m.group(4)) == rates[1]
     assert all(int(g) > 0 for g in m.groups()[4:])
+
+
+def test_live_runs_print_a_line_each_and_how_many_dropped_a_scan():
+    from runtime.bench import LiveRun, live_runs_lines
+
+    runs = [LiveRun(2400, 0, 0, 2, 11.0, 95.0), LiveRun(2400, 1, 0, 8, 24.0, 140.0),
+            LiveRun(2399, 0, 2, 3, 13.0, 90.0)]
+    lines = live_runs_lines(runs, queue_size=8)
+    assert lines[1] == ("live run 2 of 3: 2400 scans, dropped 1 (queue full 1, stale 0), most waiting at once 8, "
+                        "latency p99 24.00 ms; reference workload after it 140 ms")
+    assert lines[-1] == ("3 live runs: 2 of 3 dropped a scan (3 scans in all); latency p99 11.00-24.00 ms (median "
+                         "13.00); most scans waiting at once 8 (the queue holds 8)")
+
+
+def test_bench_needs_at_least_one_live_run():
+    from runtime.bench import run_bench
+
+    with pytest.raises(ValueError, match="live_runs must be >= 1"):
+        run_bench(live_runs=0)
+
+
+def test_repeated_live_runs_are_summarised_and_the_last_recording_replayed(tmp_path):
+    from runtime.bench import run_bench
+
+    report = run_bench(world="room", duration=1.0, out_dir=str(tmp_path), pinned_runs=0, live_runs=2)
+    assert re.search(r"^live run 1 of 2: \d+ scans, dropped \d+ ", report, re.M), report
+    assert re.search(r"^2 live runs: \d of 2 dropped a scan", report, re.M), report
+    assert "the last of 2)" in report and "live runtime (the largest of 2 runs)" in report
+    assert (tmp_path / "live-1" / "demo.mcap").is_file() and (tmp_path / "live-2" / "demo.mcap").is_file()
+    assert (tmp_path / "replay_raw").is_dir()  # the replays ran on the last recording
