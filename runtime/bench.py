@@ -9,8 +9,9 @@
 3. Peak resident memory: of the live runtime, of each replay (each run's own peak: the kernel's high-water
    mark is reset between the runs, :func:`reset_peak_rss`), of this whole process (the three runs one after
    the other) and of the largest child process (emulated devices, map worker).
-``live_runs`` > 1 repeats the live run (a scan dropped now and then under load shows only over many runs):
-one line per run and a summary; the replays then use the last run's recording.
+``live_runs`` > 1 repeats the live run (a scan dropped now and then under load shows only over many runs),
+each but the last in a process of its own: one line per run and a summary; the replays use the last
+run's recording.
 ``stages``: also the CPU time of each stage of the processing (:mod:`runtime.stageprof`).
 ``load`` > 0 runs that many CPU-bound processes (:mod:`runtime.load`) beside all of it; every figure printed
 says how many. ``config``: the runtime's settings (``--config``, ``--mapping.*`` ... flags), e.g.
@@ -98,6 +99,8 @@ def peak_rss_mib() -> float:
 
 _PINNED_CHILD = """
 import json, os, pickle, sys
+from runtime.tuning import setup_process
+setup_process()  # as the glassmap program does
 from runtime.bench import reference_workload_ms
 from runtime.readers import ReplayInputError
 from runtime.replay import replay_file
@@ -174,6 +177,7 @@ class LiveRun:
     most_waiting: int  # the most scans waiting for processing at once
     p99_ms: float  # latency, scan bytes in -> maps updated
     reference_ms: float  # the machine's speed just after the run (reference_workload_ms)
+    peak_mib: float  # the runtime's peak resident memory (MiB)
 
     @property
     def dropped(self) -> int:
@@ -184,14 +188,61 @@ def live_runs_lines(runs: list[LiveRun], queue_size: int) -> list[str]:
     """One line per live run, then a summary over the runs: how many dropped a scan, the p99 range."""
     n = len(runs)
     lines = [f"live run {i} of {n}: {r.scans} scans, dropped {r.dropped} (queue full {r.dropped_overflow}, stale "
-             f"{r.dropped_stale}), most waiting at once {r.most_waiting}, latency p99 {r.p99_ms:.2f} ms; reference "
-             f"workload after it {r.reference_ms:.0f} ms" for i, r in enumerate(runs, 1)]
+             f"{r.dropped_stale}), most waiting at once {r.most_waiting}, latency p99 {r.p99_ms:.2f} ms, peak memory "
+             f"{r.peak_mib:.0f} MiB; reference workload after it {r.reference_ms:.0f} ms" for i, r in enumerate(runs, 1)]
     p99 = [r.p99_ms for r in runs]
     with_drops = sum(r.dropped > 0 for r in runs)
     lines.append(f"{n} live runs: {with_drops} of {n} dropped a scan ({sum(r.dropped for r in runs)} scans in all); "
                  f"latency p99 {min(p99):.2f}-{max(p99):.2f} ms (median {float(np.median(p99)):.2f}); most scans "
                  f"waiting at once {max(r.most_waiting for r in runs)} (the queue holds {queue_size})")
     return lines
+
+
+def _live_figures(res, peak_mib: float) -> LiveRun:
+    """The :class:`LiveRun` of a demo result (``runtime.demo.DemoResult``), timing the machine now."""
+    st = res.summary.stages
+    p99 = float(np.percentile(np.asarray(res.latency) * 1e3, 99)) if res.latency else float("nan")
+    return LiveRun(st.scans_received, st.dropped_overflow, st.dropped_stale, st.most_waiting, p99,
+                   reference_workload_ms(), peak_mib)
+
+
+_LIVE_CHILD = """
+import asyncio, dataclasses, json, pickle, sys
+from runtime.tuning import setup_process
+setup_process()  # as the glassmap program does
+from runtime.bench import _live_figures, peak_rss_mib
+from runtime.demo import DemoOptions, run_demo
+config = pickle.load(sys.stdin.buffer)
+res = asyncio.run(run_demo(DemoOptions(world=sys.argv[1], speed=1.0, duration=float(sys.argv[2]), out_dir=sys.argv[3],
+                                       progress=True, config=config)))
+print("LIVE " + json.dumps(dataclasses.asdict(_live_figures(res, peak_rss_mib()))))
+"""
+
+
+class LiveRunError(RuntimeError):
+    """A live run in its own process failed."""
+
+
+def _live_run_in_child(world: str, duration: float, out: Path, config, i: int, n: int) -> LiveRun:
+    """Live run ``i`` of ``n`` in a child process (this checkout's code), recording to ``out``; its progress
+    and errors go to this process's stderr. :class:`LiveRunError` if it fails."""
+    import json
+    import pickle
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    if Path(world).is_file():
+        world = str(Path(world).resolve())
+    print(f"live run {i} of {n} (its own process)", file=sys.stderr, flush=True)
+    got = subprocess.run([sys.executable, "-c", _LIVE_CHILD, world, str(duration), str(out.resolve())],
+                         input=pickle.dumps(config), stdout=subprocess.PIPE, env=env)
+    for line in got.stdout.decode(errors="replace").splitlines():
+        if line.startswith("LIVE "):
+            return LiveRun(**json.loads(line[5:]))
+    raise LiveRunError(f"live run {i} of {n} failed in its own process (exit {got.returncode}); its error output is "
+                       "above")
 
 
 STARTUP_S = 2.0  # seconds of scans at 40 Hz reported separately as start-up
@@ -250,21 +301,15 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         from runtime.demo import DemoOptions, run_demo
 
         replay_config = None  # the recording's own settings (start pose, loop closure, ...)
-        runs: list[LiveRun] = []
-        live_peak = 0.0
-        for i in range(1, live_runs + 1):
-            separate = separate and reset_peak_rss()
-            run_out = out if live_runs == 1 else out / f"live-{i}"
-            res = asyncio.run(run_demo(DemoOptions(world=world, speed=1.0, duration=duration, out_dir=str(run_out),
-                                                   progress=True, config=config)))
-            live_peak = max(live_peak, peak_rss_mib())
-            st = res.summary.stages
-            runs.append(LiveRun(st.scans_received, st.dropped_overflow, st.dropped_stale, st.most_waiting,
-                                float(np.percentile(np.asarray(res.latency) * 1e3, 99)) if res.latency else float("nan"),
-                                reference_workload_ms()))
-            if i < live_runs:
-                del res  # its runtime and maps are gone before the next run starts
-                release_memory()
+        # every run but the last in a process of its own, as a fresh `glassmap bench` would run it (later runs
+        # in one process are not alike: more scans waiting, a higher peak); the last one here, for its details
+        runs = [_live_run_in_child(world, duration, out / f"live-{i}", config, i, live_runs)
+                for i in range(1, live_runs)]
+        separate = separate and reset_peak_rss()
+        res = asyncio.run(run_demo(DemoOptions(world=world, speed=1.0, duration=duration,
+                                               out_dir=str(out if live_runs == 1 else out / f"live-{live_runs}"),
+                                               progress=True, config=config)))
+        runs.append(_live_figures(res, peak_rss_mib()))
         if live_runs > 1:
             lines += live_runs_lines(runs, pipeline.queue_size)
         s = res.summary
@@ -281,7 +326,8 @@ def _run(world: str, duration: float, recording: str | None, out_dir: str, besid
         lines += _stage_lines(res.stages, "live: ")
         lines.append(f"  machine speed at the end of the live run: reference workload {runs[-1].reference_ms:.0f} ms "
                      "(at its start: the first line)")
-        peaks["live runtime" if live_runs == 1 else f"live runtime (the largest of {live_runs} runs)"] = live_peak
+        peaks["live runtime" if live_runs == 1 else f"live runtime (the largest of {live_runs} runs)"] = max(
+            r.peak_mib for r in runs)
         release_memory()
     for source in ("messages", "raw"):
         separate = separate and reset_peak_rss()

@@ -25,7 +25,7 @@ from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
 from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
-from runtime.tuning import one_malloc_arena, one_thread_per_process
+from runtime.tuning import setup_process
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +65,7 @@ def _register_glass_label(glass_sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    one_thread_per_process()  # parallel jobs are processes; a BLAS team per small product only waits (runtime.tuning)
-    one_malloc_arena()  # before any thread starts: threads' own malloc arenas hold freed buffers (runtime.tuning)
+    setup_process()  # one BLAS thread, one malloc arena, before any thread starts (runtime.tuning)
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
@@ -375,16 +374,28 @@ _positive_int = _int_at_least(1)
 
 
 def cmd_bench(args) -> int:
-    from runtime.bench import run_bench
+    from runtime.bench import LiveRunError, run_bench
 
     base = None
     if args.recording is not None:  # its recorded settings, then the flags
         from runtime.replay import recorded_config
 
         base = recorded_config(args.recording)
-    print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
-                    load=args.load, stages=args.stages, config=_config(args, base), pinned_runs=args.pinned_runs,
-                    live_runs=args.live_runs))
+    else:  # a bad world file is said before anything starts
+        from glassmap.sim.world import WorldFileError, load_world
+
+        try:
+            load_world(args.world)
+        except WorldFileError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    try:
+        print(run_bench(world=args.world, duration=args.duration, recording=args.recording, out_dir=args.out,
+                        load=args.load, stages=args.stages, config=_config(args, base), pinned_runs=args.pinned_runs,
+                        live_runs=args.live_runs))
+    except LiveRunError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     return 0
 
 

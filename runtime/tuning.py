@@ -7,7 +7,7 @@ garbage collector's way.
   its time waiting for its own threads (a 1081 x 19 -> 32 -> 32 -> 16 -> 2 network: ~20x slower than on
   one thread). :func:`one_blas_thread` limits every BLAS library loaded in this process to one thread;
   :data:`ONE_THREAD_ENV` does the same for libraries loaded later and for child processes (read when their
-  libraries load). The ``glassmap`` program does both at start (:func:`one_thread_per_process`): its
+  libraries load). The ``glassmap`` program does both at start (:func:`one_thread_per_process`, in :func:`setup_process`): its
   parallel jobs are processes (replays, benchmark, experiment), each single-threaded.
 - CPython's full garbage collection walks every tracked object; after the imports (numpy, scipy,
   rosbags, ...) that is ~10^5 objects and a pause of tens of milliseconds, taken by whichever thread
@@ -90,6 +90,14 @@ def one_thread_per_process() -> None:
         os.environ.setdefault(k, v)
     if os.environ["OPENBLAS_NUM_THREADS"] == "1":
         one_blas_thread()
+
+
+def setup_process() -> None:
+    """What the ``glassmap`` program does at start, for any process that runs the runtime or a replay (the
+    benchmark's child processes too): :func:`one_thread_per_process` and :func:`one_malloc_arena`, before
+    any thread starts."""
+    one_thread_per_process()
+    one_malloc_arena()
 
 
 def freeze_startup() -> None:

@@ -35,10 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="out/demo_drops")
     a = ap.parse_args(argv)
 
-    from runtime.tuning import one_malloc_arena, one_thread_per_process
+    from runtime.tuning import setup_process
 
-    one_thread_per_process()
-    one_malloc_arena()
+    setup_process()
     import runtime.pipeline as P
     import runtime.processor as RP
     from runtime.config import RuntimeConfig

@@ -62,11 +62,11 @@ def test_the_one_core_figure_is_the_median_of_the_pinned_runs(tmp_path):
 def test_live_runs_print_a_line_each_and_how_many_dropped_a_scan():
     from runtime.bench import LiveRun, live_runs_lines
 
-    runs = [LiveRun(2400, 0, 0, 2, 11.0, 95.0), LiveRun(2400, 1, 0, 8, 24.0, 140.0),
-            LiveRun(2399, 0, 2, 3, 13.0, 90.0)]
+    runs = [LiveRun(2400, 0, 0, 2, 11.0, 95.0, 270.0), LiveRun(2400, 1, 0, 8, 24.0, 140.0, 281.4),
+            LiveRun(2399, 0, 2, 3, 13.0, 90.0, 275.0)]
     lines = live_runs_lines(runs, queue_size=8)
     assert lines[1] == ("live run 2 of 3: 2400 scans, dropped 1 (queue full 1, stale 0), most waiting at once 8, "
-                        "latency p99 24.00 ms; reference workload after it 140 ms")
+                        "latency p99 24.00 ms, peak memory 281 MiB; reference workload after it 140 ms")
     assert lines[-1] == ("3 live runs: 2 of 3 dropped a scan (3 scans in all); latency p99 11.00-24.00 ms (median "
                          "13.00); most scans waiting at once 8 (the queue holds 8)")
 
@@ -87,3 +87,18 @@ def test_repeated_live_runs_are_summarised_and_the_last_recording_replayed(tmp_p
     assert "the last of 2)" in report and "live runtime (the largest of 2 runs)" in report
     assert (tmp_path / "live-1" / "demo.mcap").is_file() and (tmp_path / "live-2" / "demo.mcap").is_file()
     assert (tmp_path / "replay_raw").is_dir()  # the replays ran on the last recording
+
+
+def test_a_failed_live_run_in_its_own_process_says_so(tmp_path):
+    from runtime.bench import LiveRunError, run_bench
+
+    with pytest.raises(LiveRunError, match="live run 1 of 2 failed in its own process"):
+        run_bench(world=str(tmp_path / "no-such-world.toml"), duration=1.0, out_dir=str(tmp_path), pinned_runs=0,
+                  live_runs=2)
+
+
+def test_bench_names_a_bad_world_file_before_it_starts(tmp_path, capsys):
+    from runtime.cli import main
+
+    assert main(["bench", "--world", str(tmp_path / "no-such-world.toml"), "--live-runs", "2"]) == 2
+    assert "cannot read the world file" in capsys.readouterr().err
