@@ -116,6 +116,12 @@ print("PINNED " + json.dumps({"source": source, "scans": r.scans, "wall": r.wall
 """
 
 
+def _checkout_env(root: str | Path | None = None) -> tuple[str, dict[str, str]]:
+    """The checkout ``root`` (default: this one) and an environment whose Python imports its code first."""
+    root = str(Path(root).resolve() if root is not None else Path(__file__).resolve().parents[1])
+    return root, {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
 class PinnedReplayError(RuntimeError):
     """The pinned replay's child process failed (its error output is in the message)."""
 
@@ -134,8 +140,7 @@ def pinned_replay(recording: str | Path, config=None, root: str | Path | None = 
     if not hasattr(os, "sched_setaffinity"):
         return None
     cpu = max(os.sched_getaffinity(0))
-    root = str(Path(root).resolve() if root is not None else Path(__file__).resolve().parents[1])
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    root, env = _checkout_env(root)
     out = subprocess.run([sys.executable, "-c", _PINNED_CHILD, str(Path(recording).resolve())],
                          input=pickle.dumps(config), capture_output=True, env=env, cwd=root,
                          preexec_fn=lambda: os.sched_setaffinity(0, {cpu}))
@@ -231,8 +236,7 @@ def _live_run_in_child(world: str, duration: float, out: Path, config, i: int, n
     import subprocess
     import sys
 
-    root = str(Path(__file__).resolve().parents[1])
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    _, env = _checkout_env()
     if Path(world).is_file():
         world = str(Path(world).resolve())
     print(f"live run {i} of {n} (its own process)", file=sys.stderr, flush=True)

@@ -378,6 +378,9 @@ def cmd_bench(args) -> int:
 
     base = None
     if args.recording is not None:  # its recorded settings, then the flags
+        if args.live_runs > 1:
+            print("error: --live-runs repeats the live run, and with --recording there is none", file=sys.stderr)
+            return 2
         from runtime.replay import recorded_config
 
         base = recorded_config(args.recording)

@@ -102,3 +102,10 @@ def test_bench_names_a_bad_world_file_before_it_starts(tmp_path, capsys):
 
     assert main(["bench", "--world", str(tmp_path / "no-such-world.toml"), "--live-runs", "2"]) == 2
     assert "cannot read the world file" in capsys.readouterr().err
+
+
+def test_bench_refuses_repeated_live_runs_of_a_recording(tmp_path, capsys):
+    from runtime.cli import main
+
+    assert main(["bench", "--recording", str(tmp_path / "any.mcap"), "--live-runs", "3"]) == 2
+    assert "with --recording there is none" in capsys.readouterr().err
