@@ -145,6 +145,12 @@ class _Walker:
             self._channels[cid] = (topic, sid)
         self._chosen.clear()
 
+    def adopt(self, other: _Walker) -> None:
+        """Take the schemas and channels ``other`` has seen (a file's summary)."""
+        self._schemas.update(other._schemas)
+        self._channels.update(other._channels)
+        self._chosen.clear()
+
     def chunk(self, body: bytes) -> list[McapRecord]:
         """The wanted messages of a Chunk record's content (decompressed and walked whole)."""
         end = len(body)
@@ -167,10 +173,11 @@ class _Walker:
         return out
 
 
-def _unwanted_chunks(f, size: int, wanted: Wanted) -> set[int]:
-    """File offsets of the Chunk records that hold messages of none of the wanted channels, from the summary
-    (whose Schema and Channel records define every channel up front); empty for a file without a footer or
-    summary, or with a summary that does not parse."""
+def _unwanted_chunks(f, size: int, walker: _Walker) -> set[int]:
+    """File offsets of the Chunk records that hold messages of none of the channels ``walker`` wants, from the
+    summary, whose Schema and Channel records define every channel up front: ``walker`` learns them, so that
+    a channel defined in a skipped chunk (one that closed before the channel's first message) is known when
+    its messages come. Empty for a file without a footer or summary, or with a summary that does not parse."""
     if size < len(MAGIC) + _TAIL:
         return set()
     f.seek(size - _TAIL)
@@ -182,7 +189,7 @@ def _unwanted_chunks(f, size: int, wanted: Wanted) -> set[int]:
         return set()
     f.seek(start)
     buf = f.read(size - _TAIL - start)
-    summary = _Walker(wanted)
+    summary = _Walker(walker._wanted)  # adopted by ``walker`` only once the whole summary parses
     chunks: list[tuple[int, list[int]]] = []  # (chunk offset, its channels)
     pos = 0
     try:
@@ -201,7 +208,8 @@ def _unwanted_chunks(f, size: int, wanted: Wanted) -> set[int]:
                 chunks.append((offset, [_U16.unpack_from(buf, body + 36 + i)[0] for i in range(0, n, 10)]))
     except (DamagedRecord, struct.error):
         return set()
-    return {off for off, ids in chunks if ids and all(summary._choose(cid) is None for cid in ids)}
+    walker.adopt(summary)
+    return {off for off, ids in chunks if ids and all(walker._choose(cid) is None for cid in ids)}
 
 
 def iter_channel_messages(path: str | Path, wanted: Wanted) -> Iterator[McapRecord]:
@@ -214,7 +222,7 @@ def iter_channel_messages(path: str | Path, wanted: Wanted) -> Iterator[McapReco
         if f.read(len(MAGIC)) != MAGIC:
             log.info("%s: not an MCAP file (no magic at its start)", path)
             return
-        skip = _unwanted_chunks(f, size, wanted)
+        skip = _unwanted_chunks(f, size, walker)
         f.seek(len(MAGIC))
         pos = len(MAGIC)
         while True:

@@ -229,3 +229,25 @@ def test_a_map_gets_a_chunk_of_its_own_that_a_raw_reading_skips(tmp_path):
     cut.write_bytes(bytes(data[:next(off for off, op, _ in _top_level(bytes(data)) if op == 0x0F)]))
     got = list(iter_channel_messages(cut, _is_raw))
     assert got == _library(cut) and len(got) < len(_library(path))
+
+
+def test_a_channel_defined_in_a_chunk_without_its_messages_is_still_read(tmp_path):
+    """A chunk can close between a channel's definition and its first message (the recorder cuts chunks by
+    time): the chunk that defines the channel then holds no message of it and is skipped, and the channel's
+    messages in later chunks must still come out (the summary defines every channel)."""
+    path = tmp_path / "late.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=1)  # a chunk closes after each message
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema("test_msgs/msg/Blob", "ros2msg", b"uint8[] data\n")
+        busy = w.register_channel("/busy", "cdr", sid)
+        late = w.register_channel("/late", "cdr", sid)  # defined in the first chunk, which holds only /busy
+        w.add_message(busy, 1, b"b1", 1)
+        for i in range(3):
+            w.add_message(late, 10 + i, b"l%d" % i, 10 + i)
+        w.finish()
+    chunks = _chunk_topics(path)
+    assert chunks == [{"/busy"}, {"/late"}, {"/late"}, {"/late"}]
+    want = lambda t, m: t == "/late"  # noqa: E731
+    got = list(iter_channel_messages(path, want))
+    assert [r.data for r in got] == [b"l0", b"l1", b"l2"] and got == _library(path, want)
