@@ -194,7 +194,8 @@ def live_runs_lines(runs: list[LiveRun], queue_size: int) -> list[str]:
     n = len(runs)
     lines = [f"live run {i} of {n}: {r.scans} scans, dropped {r.dropped} (queue full {r.dropped_overflow}, stale "
              f"{r.dropped_stale}), most waiting at once {r.most_waiting}, latency p99 {r.p99_ms:.2f} ms, peak memory "
-             f"{r.peak_mib:.0f} MiB; reference workload after it {r.reference_ms:.0f} ms" for i, r in enumerate(runs, 1)]
+             f"{r.peak_mib:.0f} MiB; reference workload after it {r.reference_ms:.0f} ms"
+             for i, r in enumerate(runs, 1)]
     p99 = [r.p99_ms for r in runs]
     with_drops = sum(r.dropped > 0 for r in runs)
     lines.append(f"{n} live runs: {with_drops} of {n} dropped a scan ({sum(r.dropped for r in runs)} scans in all); "

@@ -7,8 +7,9 @@ garbage collector's way.
   its time waiting for its own threads (a 1081 x 19 -> 32 -> 32 -> 16 -> 2 network: ~20x slower than on
   one thread). :func:`one_blas_thread` limits every BLAS library loaded in this process to one thread;
   :data:`ONE_THREAD_ENV` does the same for libraries loaded later and for child processes (read when their
-  libraries load). The ``glassmap`` program does both at start (:func:`one_thread_per_process`, in :func:`setup_process`): its
-  parallel jobs are processes (replays, benchmark, experiment), each single-threaded.
+  libraries load). The ``glassmap`` program does both at start (:func:`setup_process`), and so do the
+  benchmark's child processes: its parallel jobs are processes (replays, benchmark, experiment), each
+  single-threaded.
 - CPython's full garbage collection walks every tracked object; after the imports (numpy, scipy,
   rosbags, ...) that is ~10^5 objects and a pause of tens of milliseconds, taken by whichever thread
   allocates at that moment (often the processing thread in the middle of a scan). :func:`freeze_startup`
