@@ -107,7 +107,8 @@ def main() -> int:
         print(f"{r['world']:22s} seed {r['seed']:2d}  ATE {100 * r['ate_rmse']:5.2f} cm  NEES {r['nees_mean']:6.2f}  "
               f"inside {100 * r['inside_95']:5.1f} %  (key {r['nees_key_mean']:5.2f} "
               f"between {r['nees_between_mean']:5.2f}; yaw {r['yaw_nees_key_mean']:4.2f} "
-              f"{r['yaw_nees_between_mean']:4.2f})  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
+              f"{r['yaw_nees_between_mean']:4.2f}; axes {r['along_nees_mean']:4.2f} {r['cross_nees_mean']:4.2f} "
+              f"{r['yaw_nees_mean']:4.2f})  sigma {100 * r['sigma_xy_mean']:5.2f} cm  "
               f"{'in band' if ok else 'OUT'}", flush=True)
     _summary(rows)
     print(f"{time.perf_counter() - t0:.0f} s")

@@ -87,6 +87,12 @@ class RunMetrics:
     nees_between_mean: float
     yaw_nees_key_mean: float
     yaw_nees_between_mean: float
+    # the mean NEES of each axis alone (1 dof each, ideal 1), over all scans: the position error along and
+    # across the true heading, and the heading; a 3-dof mean in band can hide a position covariance too wide
+    # and a heading too narrow that compensate
+    along_nees_mean: float
+    cross_nees_mean: float
+    yaw_nees_mean: float
     sigma_xy_mean: float
     matched_share: float
     t_core_median_ms: float  # over all scans
@@ -289,6 +295,18 @@ def _nees(err: np.ndarray, covs: np.ndarray) -> np.ndarray:
     return np.einsum("si,si->s", err, np.linalg.solve(covs, err[:, :, None])[:, :, 0])
 
 
+def axis_nees(err: np.ndarray, covs: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """(S, 3) squared errors over their variances per axis alone: position along and across ``heading`` (S,)
+    rad, and yaw; errors (S, 3) and covariances (S, 3, 3) in the map frame (x, y, yaw)."""
+    u = np.stack([np.cos(heading), np.sin(heading)], axis=1)  # along the track
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)  # across it
+    out = np.empty((err.shape[0], 3))
+    for j, v in enumerate((u, n)):
+        out[:, j] = np.einsum("si,si->s", err[:, :2], v) ** 2 / np.einsum("si,sij,sj->s", v, covs[:, :2, :2], v)
+    out[:, 2] = err[:, 2] ** 2 / covs[:, 2, 2]
+    return out
+
+
 def _mean_or_nan(a: np.ndarray) -> float:
     return float(a.mean()) if a.size else float("nan")
 
@@ -301,7 +319,8 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
     eo = traj.odom - traj.truth
     do = np.hypot(eo[:, 0], eo[:, 1])
     nees = _nees(e, traj.covs)
-    yaw_nees = e[:, 2] ** 2 / traj.covs[:, 2, 2]
+    axes = axis_nees(e, traj.covs, traj.truth[:, 2])
+    yaw_nees = axes[:, 2]
     steps = np.diff(traj.truth[:, :2], axis=0)
     sig = np.sqrt(np.linalg.eigvalsh(traj.covs[:, :2, :2])[:, 1])
     s = len(traj.stamps)
@@ -331,6 +350,8 @@ def metrics(traj: Trajectory, run) -> RunMetrics:
         inside_95=float(np.mean(nees <= CHI2_3DOF_95)),
         nees_key_mean=_mean_or_nan(nees[traj.key]), nees_between_mean=_mean_or_nan(nees[~traj.key]),
         yaw_nees_key_mean=_mean_or_nan(yaw_nees[traj.key]), yaw_nees_between_mean=_mean_or_nan(yaw_nees[~traj.key]),
+        along_nees_mean=float(axes[:, 0].mean()), cross_nees_mean=float(axes[:, 1].mean()),
+        yaw_nees_mean=float(axes[:, 2].mean()),
         sigma_xy_mean=float(sig.mean()),
         matched_share=float(traj.matched / max(s, 1)),
         t_core_median_ms=float(np.median(traj.t_core) * 1e3),

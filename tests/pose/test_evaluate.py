@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from glassmap.pose.evaluate import metrics, run_estimator
+from glassmap.pose.evaluate import axis_nees, metrics, run_estimator
 from glassmap.sim.dataset import simulate_run
 from glassmap.sim.world import load_world
 
@@ -68,5 +68,25 @@ def test_the_mean_nees_splits_into_key_scans_and_the_scans_between_them():
     assert 0.0 < k < 1.0
     assert m.nees_mean == pytest.approx(k * m.nees_key_mean + (1.0 - k) * m.nees_between_mean)
     assert 0.0 < m.yaw_nees_key_mean < m.nees_key_mean and 0.0 < m.yaw_nees_between_mean < m.nees_between_mean
+    # each axis alone: 1 dof each, and with the heading's own variance the same as the split's
+    assert m.yaw_nees_mean == pytest.approx(k * m.yaw_nees_key_mean + (1.0 - k) * m.yaw_nees_between_mean)
+    assert m.along_nees_mean > 0.0 and m.cross_nees_mean > 0.0
     # the key scans' covariance is the smaller: no odometry since the key scan
     assert np.median(traj.covs[traj.key, 2, 2]) < np.median(traj.covs[~traj.key, 2, 2])
+
+
+def test_each_axis_alone_is_measured_along_and_across_the_true_heading():
+    """Heading 90 deg: x is across the track, y along it. Errors (along 2 cm, across 1 cm, yaw 0.01 rad)
+    under variances along 4e-4, across 1e-4 and a correlated x-y part: the marginal variance of each axis."""
+    err = np.array([[-0.01, 0.02, 0.01]])  # map frame (x, y, yaw)
+    cov = np.array([[[1e-4, 5e-5, 0.0], [5e-5, 4e-4, 0.0], [0.0, 0.0, 2.5e-4]]])
+    out = axis_nees(err, cov, np.array([np.pi / 2]))[0]
+    # along = (0, 1): error 0.02, variance 4e-4 -> 1.0; across = (-1, 0): error 0.01, variance 1e-4 -> 1.0
+    assert out == pytest.approx([1.0, 1.0, 0.4])
+    # heading 0: along is x (error -0.01 over 1e-4 -> 1.0), across is y (0.02 over 4e-4 -> 1.0)
+    assert axis_nees(err, cov, np.array([0.0]))[0] == pytest.approx([1.0, 1.0, 0.4])
+    # a 3-dof NEES (here the sum: no correlation) near its band can hide axes that compensate: position 10x
+    # too wide, heading 1.2x too narrow
+    wide = np.array([[[1e-3, 0.0, 0.0], [0.0, 4e-3, 0.0], [0.0, 0.0, 2.5e-4 / 3.0]]])
+    nees = axis_nees(err, wide, np.array([0.0]))[0]
+    assert nees == pytest.approx([0.1, 0.1, 1.2]) and 1.0 < nees.sum() < 1.5
