@@ -139,6 +139,10 @@ def _summary(rows: list[dict]) -> None:
           f"max {np.nanmax(key):.2f}; "
           f"of the scans between them: min {np.nanmin(between):.2f} median {np.nanmedian(between):.2f} "
           f"max {np.nanmax(between):.2f}")
+    axes = [(name, np.array([r[k] for r in rows])) for name, k in
+            (("along the track", "along_nees_mean"), ("across", "cross_nees_mean"), ("heading", "yaw_nees_mean"))]
+    print("each axis alone (ideal 1): " + "; ".join(f"{name} min {a.min():.2f} median {np.median(a):.2f} max "
+                                                    f"{a.max():.2f}" for name, a in axes))
     worlds = sorted({r["world"] for r in rows})
     per = [(w, np.mean([r[nk] for r in rows if r["world"] == w]), np.mean([r[ik] for r in rows if r["world"] == w]))
            for w in worlds]
