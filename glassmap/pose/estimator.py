@@ -31,7 +31,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.chain import ChainConfig, DriftChain
-from glassmap.pose.estimator_jit import add_hits, registration_sigmas
+from glassmap.pose.estimator_jit import add_hits, registration_sigmas, seen_through_glass
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF, offset_consensus
 from glassmap.pose.filter_jit import carried, rotated
@@ -837,13 +837,12 @@ class PoseEstimator:
         k = np.clip(2.0 * p - 1.0, 0.0, 1.0)
         w = 1.0 - (1.0 - self.config.glass_min_weight) * k
         if self.config.behind_glass_weight < 1.0 and r.size:
-            res = self.occupancy.grid.resolution
+            g = self.occupancy.grid
             reach = np.maximum(r - self.config.glass_behind_margin, 0.0)
-            steps = np.arange(0.0, float(reach.max()) + res, 0.5 * res)  # (T,) half-cell steps along the beams
-            inside = steps[None, :] < reach[:, None]  # (n, T)
-            xy = laser_pose[:2][None, None, :] + steps[None, :, None] * u[:, None, :]
-            pg = self.glass_probability_at(xy.reshape(-1, 2)).reshape(inside.shape)
-            behind = np.any(inside & (pg > 0.5), axis=1)
+            steps = np.arange(0.0, float(reach.max()) + g.resolution, 0.5 * g.resolution)  # half-cell steps
+            behind = seen_through_glass(g[GLASS_LAYER], float(g.origin[0]), float(g.origin[1]), float(g.resolution),
+                                        float(laser_pose[0]), float(laser_pose[1]), np.ascontiguousarray(u[:, 0]),
+                                        np.ascontiguousarray(u[:, 1]), reach, steps)
             w = np.where(behind, w * self.config.behind_glass_weight, w)
         return w
 

@@ -55,3 +55,31 @@ def warm_up() -> None:
     end = np.zeros((1, 2))
     registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
     add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
+
+
+@_jit
+def seen_through_glass(glass: np.ndarray, ox: float, oy: float, res: float, lx: float, ly: float, ux: np.ndarray,
+                       uy: np.ndarray, reach: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Per beam (n,): whether a sample of its path from the laser at (lx, ly) along (ux, uy), at the distances
+    ``steps`` (T,, increasing, m) short of its ``reach`` (m), lies in a cell whose glass log-odds (float32
+    ``glass`` (h, w), corner (ox, oy), cell ``res`` m) gives p(glass) = 1 / (1 + exp(-lo)) > 0.5; samples off the
+    grid or not finite are not glass. Each beam stops at its first glass sample or at its reach."""
+    n, h, w = ux.shape[0], glass.shape[0], glass.shape[1]
+    out = np.zeros(n, np.bool_)
+    for i in range(n):
+        for t in range(steps.shape[0]):
+            s = steps[t]
+            if not s < reach[i]:
+                break
+            x = lx + s * ux[i]
+            y = ly + s * uy[i]
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            cx = np.int64(np.floor((x - ox) / res))
+            cy = np.int64(np.floor((y - oy) / res))
+            if cx < 0 or cx >= w or cy < 0 or cy >= h:
+                continue
+            if 1.0 / (1.0 + np.exp(-np.float64(glass[cy, cx]))) > 0.5:
+                out[i] = True
+                break
+    return out

@@ -120,6 +120,43 @@ def test_glass_weights_down_weight_beams_ending_on_glass_cells():
     assert mask[iy, ix] and mask.sum() == 1
 
 
+def _seen_through_glass_sampled(est, laser_pose, angles, reach):
+    """The dense numpy form of the behind-glass test (every beam sampled at half-cell steps to the longest reach,
+    each sample's p(glass) looked up): the reference for the compiled walk."""
+    g = est.occupancy.grid
+    u = np.stack([np.cos(laser_pose[2] + angles), np.sin(laser_pose[2] + angles)], axis=1)
+    steps = np.arange(0.0, float(reach.max()) + g.resolution, 0.5 * g.resolution)
+    inside = steps[None, :] < reach[:, None]
+    xy = laser_pose[:2][None, None, :] + steps[None, :, None] * u[:, None, :]
+    pg = est.glass_probability_at(xy.reshape(-1, 2)).reshape(inside.shape)
+    return np.any(inside & (pg > 0.5), axis=1)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_beams_seen_through_glass_are_those_the_sampled_path_finds(seed):
+    """The compiled walk along each beam (stopping at its first glass cell) flags the same beams as sampling
+    every path densely: random glass log-odds (some panes, some doubtful cells, some at exactly 0), beams of
+    random length from a random pose, some leaving the grid."""
+    from glassmap.pose.estimator_jit import seen_through_glass
+
+    rng = np.random.default_rng(seed)
+    est = PoseEstimator(EstimatorConfig())
+    g = est.occupancy.grid
+    g.add_layer("glass", 0.0, np.float32)
+    lo = g["glass"]
+    lo[:] = rng.choice(np.array([0.0, -2.0, 3.0, 1e-30], dtype=np.float32), size=lo.shape, p=[0.6, 0.3, 0.05, 0.05])
+    pose = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi)])
+    angles = np.linspace(-2.3, 2.3, 200)
+    reach = np.maximum(rng.uniform(-0.5, 25.0, angles.size), 0.0)
+    u = np.stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)], axis=1)
+    steps = np.arange(0.0, float(reach.max()) + g.resolution, 0.5 * g.resolution)
+    got = seen_through_glass(lo, float(g.origin[0]), float(g.origin[1]), float(g.resolution), float(pose[0]),
+                             float(pose[1]), np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1]), reach, steps)
+    want = _seen_through_glass_sampled(est, pose, angles, reach)
+    assert want.any() and not want.all()
+    np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("subcell, limit", [(True, 0.006), (False, None)])
 def test_walls_off_cell_centres_do_not_drag_a_standing_robot(subcell, limit):
     """A box whose walls lie 1 cm off cell centres: with sub-cell wall positions a robot standing still
