@@ -79,7 +79,8 @@ def seen_through_glass(glass: np.ndarray, ox: float, oy: float, res: float, lx: 
             cy = np.int64(np.floor((y - oy) / res))
             if cx < 0 or cx >= w or cy < 0 or cy >= h:
                 continue
-            if 1.0 / (1.0 + np.exp(-np.float64(glass[cy, cx]))) > 0.5:
+            lo = np.float64(glass[cy, cx])
+            if lo > 0.0 and 1.0 / (1.0 + np.exp(-lo)) > 0.5:  # (lo <= 0 or NaN: p <= 0.5 or NaN, no exp needed)
                 out[i] = True
                 break
     return out
