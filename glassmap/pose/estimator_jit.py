@@ -55,6 +55,8 @@ def warm_up() -> None:
     end = np.zeros((1, 2))
     registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
     add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
+    one = np.zeros(1)
+    seen_through_glass(lay[0], 0.0, 0.0, 1.0, 0.0, 0.0, one, one, one, one)
 
 
 @_jit
