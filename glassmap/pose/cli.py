@@ -11,7 +11,8 @@ import json
 import os
 import sys
 
-from glassmap.cli_args import add_loop_closure, add_no_progress, add_out, add_seed, add_seeds, add_world, add_worlds
+from glassmap.cli_args import (add_loop_closure, add_no_progress, add_out, add_seed, add_seeds, add_workers, add_world,
+                                add_worlds)
 
 DEFAULT_WORLDS = ["office", "room", "glass-corridor", "lobby"]
 
@@ -32,7 +33,8 @@ def register(subparsers) -> None:
                        "the share of scans inside the 95 % bound. Writes a CSV and a JSON summary.")
     add_worlds(e, ",".join(DEFAULT_WORLDS))
     add_seeds(e, "0")
-    e.add_argument("--route", default=None, help="route name (default: each world's default route)")
+    e.add_argument("--route", default="default",
+                   help="route name; 'default' = each world's default route (default: %(default)s)")
     e.add_argument("--glass-weighting", choices=["off", "online", "oracle"], default="off",
                    help="down-weight beams ending on glass cells and beams seen through glass (mirror ghosts): "
                    "'online' builds the glass map as the runtime does (classifier + glass mapper at the "
@@ -56,6 +58,8 @@ def register(subparsers) -> None:
                    "(default: OccupancyParams' default)")
     add_loop_closure(e, default=False)
     add_out(e, "out/pose", "output directory for pose_eval.csv / .json")
+    add_workers(e, "parallel processes, one run each (the per-scan times in the table are then measured on a "
+                "shared machine)")
     add_no_progress(e)
     e.set_defaults(func=_eval)
 
@@ -119,18 +123,12 @@ def _eval(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from glassmap.pose.estimator import EstimatorConfig
-    from glassmap.pose.evaluate import evaluate_run
 
     worlds = [w.strip() for w in args.worlds.split(",") if w.strip()]
     seeds = args.seeds
     oracle = args.glass_weighting == "oracle"
     online = args.glass_weighting == "online"
     cfg = replace(EstimatorConfig(), glass_weighting=oracle or online)
-    clf = None
-    if online:
-        from glassmap.classifier import GlassClassifier
-
-        clf = GlassClassifier.load_default()
     if args.every_scan:
         cfg = replace(cfg, keyframe_distance=0.0, keyframe_angle=0.0)
     if args.deskew:
@@ -142,19 +140,36 @@ def _eval(args: argparse.Namespace) -> int:
     if args.odometry_lag < 0 or not 0 <= args.drop_scans < 1:
         raise SystemExit(f"--odometry-lag must be >= 0 s and --drop-scans in [0, 1), got {args.odometry_lag}, "
                          f"{args.drop_scans}")
+    route = None if args.route == "default" else args.route
+    _check_worlds(worlds, route)
     backend = None
     if args.loop_closure:
         from glassmap.pose.backend import BackEndConfig
 
         backend = BackEndConfig()
-    rows = []
-    jobs = [(w, s) for w in worlds for s in seeds]
-    for w, s in tqdm(jobs, desc="pose eval", unit="run", disable=args.no_progress):
-        m = evaluate_run(w, args.route, s, cfg, glass_oracle=oracle, sweep_motion=args.sweep_motion,
-                         glass_online=online, classifier=clf, backend_config=backend,
-                         odometry_lag=args.odometry_lag, drop_scans=args.drop_scans)
-        rows.append(m.as_dict())
-        tqdm.write(_line(m.as_dict()))
+    options = dict(glass_oracle=oracle, sweep_motion=args.sweep_motion, glass_online=online,
+                   backend_config=backend, odometry_lag=args.odometry_lag, drop_scans=args.drop_scans)
+    jobs = [(w, route, s, cfg, options) for w in worlds for s in seeds]
+    rows: list[dict | None] = [None] * len(jobs)
+    bar = tqdm(total=len(jobs), desc="pose eval", unit="run", disable=args.no_progress)
+    workers = min(args.workers or os.cpu_count() or 1, len(jobs))
+    if workers <= 1:
+        for i, job in enumerate(jobs):
+            rows[i] = _eval_job(job)
+            tqdm.write(_line(rows[i]))
+            bar.update(1)
+    else:
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        from glassmap.threads import one_thread
+
+        with ProcessPoolExecutor(max_workers=workers, initializer=one_thread) as pool:
+            futures = {pool.submit(_eval_job, job): i for i, job in enumerate(jobs)}
+            for f in as_completed(futures):
+                rows[futures[f]] = f.result()
+                tqdm.write(_line(rows[futures[f]]))
+                bar.update(1)
+    bar.close()
     os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "pose_eval" + (f"_glass_{args.glass_weighting}" if oracle or online else "")
                         + ("_every_scan" if args.every_scan else "")
@@ -168,6 +183,38 @@ def _eval(args: argparse.Namespace) -> int:
         json.dump(rows, f, indent=1)
     print(f"wrote {stem}.csv and {stem}.json")
     return 0
+
+
+def _check_worlds(worlds: list[str], route: str | None) -> None:
+    """Load every world and look its route up before the first run (a typo stops the command at once, not
+    after hours of runs)."""
+    from glassmap.sim.world import WorldFileError, load_world
+
+    if not worlds:
+        raise SystemExit("error: --worlds names no world")
+    for w in worlds:
+        try:
+            load_world(w).route(route)
+        except (WorldFileError, ValueError) as e:
+            raise SystemExit(f"error: {e}") from None
+
+
+_CLASSIFIER = None  # the shipped classifier, loaded once per process for --glass-weighting online
+
+
+def _eval_job(job: tuple) -> dict:
+    """One run of ``glassmap pose eval`` (world, route, seed, EstimatorConfig, evaluate_run options) -> its
+    metrics as a dict; runs in a worker process with --workers."""
+    global _CLASSIFIER
+    from glassmap.pose.evaluate import evaluate_run
+
+    world, route, seed, cfg, options = job
+    if options["glass_online"] and _CLASSIFIER is None:
+        from glassmap.classifier import GlassClassifier
+
+        _CLASSIFIER = GlassClassifier.load_default()
+    m = evaluate_run(world, route, seed, cfg, classifier=_CLASSIFIER, **options)
+    return m.as_dict()
 
 
 def _line(r: dict) -> str:
