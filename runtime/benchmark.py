@@ -97,6 +97,7 @@ def prepare_worlds(cfg: BenchmarkConfig) -> list[tuple[str, str, str]]:
     """(label, path or built-in name, kind) of every world; generated ones are written to out_dir/worlds."""
     from glassmap.sim.generate import generate_world
     from glassmap.sim.seeds import TEST_SEEDS
+    from glassmap.sim.world import load_world
 
     out = []
     wdir = Path(cfg.out_dir) / "worlds"
@@ -105,6 +106,7 @@ def prepare_worlds(cfg: BenchmarkConfig) -> list[tuple[str, str, str]]:
         path = gw.save(wdir / f"gen-{gw.kind}-{s}.toml")
         out.append((f"gen-{gw.kind}-{s}", str(path), gw.kind))
     for w in cfg.worlds:
+        load_world(w)  # a bad name or file stops the benchmark here, not once per task
         is_file = w.endswith(".toml") or "/" in w or "\\" in w
         out.append((Path(w).stem if is_file else w, w, "file" if is_file else "built-in"))
     return out

@@ -23,6 +23,7 @@ import glassmap.pose.cli
 import glassmap.sim.cli
 from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
+from glassmap.sim.world import RouteError, WorldFileError
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
 from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
 from runtime.tuning import setup_process
@@ -72,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
+    except (WorldFileError, RouteError) as e:  # a world or route given on the command line, met in any command
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

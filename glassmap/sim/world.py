@@ -41,6 +41,17 @@ class WorldFileError(ValueError):
             where += f", key {key}"
         super().__init__(f"{where}: {problem}")
 
+    def __reduce__(self):  # keyword fields: picklable, so that a worker process can report it
+        return _world_file_error, (self.file, self.problem, self.line, self.key)
+
+
+def _world_file_error(file: str, problem: str, line: int | None, key: str | None) -> WorldFileError:
+    return WorldFileError(file, problem, line=line, key=key)
+
+
+class RouteError(ValueError):
+    """A world has no route of the name asked for."""
+
 
 @dataclass
 class World:
@@ -97,7 +108,7 @@ class World:
         if name is None:
             name = self.default_route
         if name is None or name not in self.routes:
-            raise ValueError(f"world {self.name!r} has no route {name!r}; routes: {sorted(self.routes)}")
+            raise RouteError(f"world {self.name!r} has no route {name!r}; routes: {sorted(self.routes)}")
         return self.routes[name]
 
     def route_clearance(self, name: str | None = None) -> float:

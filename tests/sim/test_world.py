@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from glassmap.sim.materials import MaterialKind
-from glassmap.sim.world import WorldFileError, builtin_worlds, load_world, parse_world
+from glassmap.sim.world import RouteError, WorldFileError, builtin_worlds, load_world, parse_world
 
 GOOD = """
 name = "tiny"
@@ -138,3 +138,15 @@ def test_file_errors(tmp_path: Path):
     with pytest.raises(WorldFileError, match="no built-in world named 'ofice'"):
         load_world("ofice")
     assert isinstance(WorldFileError("f", "p"), ValueError)
+
+
+def test_world_errors_survive_a_process_pool():
+    """A worker that meets a bad world reports the error itself (a WorldFileError that could not be unpickled
+    broke the whole pool instead)."""
+    import pickle
+
+    e = pickle.loads(pickle.dumps(WorldFileError("w.toml", "bad", line=3, key="segments[0]")))
+    assert (e.file, e.problem, e.line, e.key, str(e)) == ("w.toml", "bad", 3, "segments[0]",
+                                                         "w.toml, line 3, key segments[0]: bad")
+    with pytest.raises(RouteError, match=r"world 'office' has no route 'nope'; routes: \['main', 'short'\]"):
+        load_world("office").route("nope")
