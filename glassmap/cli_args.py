@@ -28,7 +28,20 @@ def parse_seeds(text: str) -> list[int]:
             raise argparse.ArgumentTypeError(f"not a seed list: {text!r} (use e.g. 0,3 or 0-9)") from None
     if not out:
         raise argparse.ArgumentTypeError(f"no seeds in {text!r} (use e.g. 0,3 or 0-9)")
+    if min(out) < 0:
+        raise argparse.ArgumentTypeError(f"seeds are integers >= 0, got {min(out)} in {text!r}")
     return out
+
+
+def seed_number(text: str) -> int:
+    """A random seed: an integer >= 0 (numpy's generators take no negative seed)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a seed: {text!r} (an integer >= 0)") from None
+    if seed < 0:
+        raise argparse.ArgumentTypeError(f"a seed is an integer >= 0, got {seed}")
+    return seed
 
 
 def add_world(p: argparse.ArgumentParser, default: str | None = "office", what: str = "simulator world") -> None:
@@ -48,7 +61,7 @@ def add_loop_closure(p: argparse.ArgumentParser, default: bool) -> None:
 
 
 def add_seed(p: argparse.ArgumentParser, default: int = 0, what: str = "random seed") -> None:
-    p.add_argument("--seed", type=int, default=default, help=f"{what} (default: %(default)s)")
+    p.add_argument("--seed", type=seed_number, default=default, help=f"{what} (default: %(default)s)")
 
 
 def add_seeds(p: argparse.ArgumentParser, default: str) -> None:

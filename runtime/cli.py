@@ -25,6 +25,7 @@ from glassmap.cli_help import tidy_help
 from glassmap.cli_args import add_no_progress, add_out, add_seed, add_workers, add_world
 from glassmap.sim.world import RouteError, WorldFileError
 from runtime.config import ConfigError, RuntimeConfig, add_config_flags, config_from_args
+from runtime.inputs import InputError
 from runtime.output_args import LiveViewError, add_live_arg, add_split_args, apply_split_args, describe_files
 from runtime.tuning import setup_process
 
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
-    except (WorldFileError, RouteError) as e:  # a world or route given on the command line, met in any command
+    except (WorldFileError, RouteError, InputError) as e:  # a world, route, file given on the command line
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -264,7 +265,7 @@ def _check_run_inputs(cfg: RuntimeConfig) -> int:
     """Device URLs and the recording path checked before anything is opened or loaded; 2 (with one line on
     stderr) if one is unusable."""
     from drivers.errors import InvalidURL
-    from runtime.inputs import InputError, check_device_url, check_output_file
+    from runtime.inputs import check_device_url, check_output_file
 
     try:
         check_device_url(cfg.resolved_laser_url(), "laser")
@@ -407,7 +408,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_recover(args) -> int:
-    from runtime.inputs import InputError, recover_recording
+    from runtime.inputs import recover_recording
 
     try:
         rep = recover_recording(args.src, args.dst)

@@ -10,7 +10,7 @@ import math
 import os
 import sys
 
-from glassmap.cli_args import add_no_progress, add_out, add_seed, add_world
+from glassmap.cli_args import add_no_progress, add_out, add_seed, add_world, seed_number
 
 
 def register(subparsers) -> None:
@@ -32,7 +32,7 @@ def register(subparsers) -> None:
                        "angle, glass facades, partitions and doors, distractors, clutter, per-world laser and "
                        "material parameters, a checked loop route) in the TOML world format. Seeds 0-99 are "
                        "test worlds (glassmap eval), 1000-1999 validation, 10000-99999 training.")
-    g.add_argument("--seed", type=int, required=True, help="world seed")
+    g.add_argument("--seed", type=seed_number, required=True, help="world seed (an integer >= 0)")
     g.add_argument("--kind", choices=("office", "corridor", "lobby", "atrium"), default=None,
                    help="kind of building (default: by the seed, seed %% 4)")
     g.add_argument("--out", default=None, help="output .toml (default: out/worlds/gen-<kind>-<seed>.toml)")
