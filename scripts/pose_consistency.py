@@ -4,9 +4,12 @@
 seeds 1000-1999); on test worlds (seeds 0-99) it only reports.
 
 Usage: .venv/bin/python scripts/pose_consistency.py WORLD.toml[,WORLD.toml...] [--seeds 0-2] [--route short]
-           [--set map_uncertainty=off] [--workers 1] [--cache DIR] [--out runs.csv]
+           [--set map_uncertainty=off] [--glass-online] [--workers 1] [--cache DIR] [--out runs.csv]
 
 ``--set`` overrides EstimatorConfig fields (numbers, booleans or words; nested ones dotted: matcher.voxel=0.1);
+``--glass-online`` builds the glass map as the runtime does (classifier + glass mapper at the estimated poses) and
+turns glass-aware matching on (``glass_weighting``; its other fields with ``--set``), as ``glassmap pose eval
+--glass-weighting online``;
 ``--cache`` keeps the simulated runs as .npz files so that variants of the estimator are compared on the same
 runs without simulating again.
 """
@@ -56,7 +59,7 @@ def _override(obj, path: list[str], value: str):
 
 
 def _one(job: tuple) -> dict:
-    world, route, seed, sets, cache = job
+    world, route, seed, sets, cache, glass_online = job
     from glassmap.sim.dataset import SimRun, simulate_run
 
     run = None
@@ -71,7 +74,12 @@ def _one(job: tuple) -> dict:
         if path:
             run.save(path)
     t = time.perf_counter()
-    traj, _ = run_estimator(run, _config(sets), world=world)
+    cfg, clf = _config(sets), None
+    if glass_online:
+        from glassmap.classifier import GlassClassifier
+
+        cfg, clf = replace(cfg, glass_weighting=True), GlassClassifier.load_default()
+    traj, _ = run_estimator(run, cfg, world=world, glass_online=glass_online, classifier=clf)
     m = metrics(traj, run).as_dict()
     m["seconds"] = time.perf_counter() - t
     return m
@@ -90,6 +98,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="0")
     ap.add_argument("--route", default="short", help="route name, or 'default'")
     ap.add_argument("--set", action="append", default=[], help="EstimatorConfig field=value")
+    ap.add_argument("--glass-online", action="store_true", help="online glass map + glass-aware matching")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", default="")
     ap.add_argument("--out", default="")
@@ -97,7 +106,7 @@ def main() -> int:
     _config(args.set)  # fail early on a bad override
     if args.cache:
         os.makedirs(args.cache, exist_ok=True)
-    jobs = [(w, args.route, s, args.set, args.cache)
+    jobs = [(w, args.route, s, args.set, args.cache, args.glass_online)
             for w in args.worlds.split(",") for s in _seeds(args.seeds)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
