@@ -32,6 +32,7 @@ from runtime.messages import (
     typestore,
     yaw_of,
 )
+from runtime.inputs import InputError
 from runtime.mcap_walk import iter_channel_messages
 from runtime.raw_cdr import raw_bytes_fields
 from runtime.recorder import iter_mcap_raw
@@ -42,7 +43,7 @@ META_NAME = "glassmap"
 BASE_FRAMES = ("base_link", "base_footprint", "base")
 
 
-class ReplayInputError(ValueError):
+class ReplayInputError(InputError):
     """A file cannot be replayed: missing, unknown kind, or without laser scans."""
 
 
@@ -58,7 +59,8 @@ def read_metadata(path: str | Path) -> dict[str, str]:
     return {}
 
 
-def _kind(path: Path) -> str:
+def recording_kind(path: Path) -> str:
+    """'mcap', 'rosbag1' or 'rosbag2' from the path (ReplayInputError if it is none of them or missing)."""
     if not path.exists():
         raise ReplayInputError(f"{path}: no such file or directory")
     if path.is_dir():
@@ -78,7 +80,7 @@ def iter_messages(path: str | Path, *, scan_topic: str | None = None,
                   odom_topic: str | None = None) -> Iterator[Scan | Odometry]:
     """Scans and odometry of a recording or bag in file time order (see module docstring)."""
     path = Path(path)
-    kind = _kind(path)
+    kind = recording_kind(path)
     if kind == "mcap":
         yield from _iter_mcap(path, scan_topic, odom_topic)
     else:

@@ -28,7 +28,7 @@ import numpy as np
 
 from glassmap.types import Odometry, Scan
 from runtime.config import RuntimeConfig
-from runtime.readers import ReplayInputError, iter_messages, read_metadata
+from runtime.readers import ReplayInputError, iter_messages, read_metadata, recording_kind
 from runtime.recorder import read_mcap
 from runtime.parallel import job_executor
 from runtime.tuning import freeze_startup, thaw
@@ -148,7 +148,7 @@ def replay_file(path: str | Path, config: RuntimeConfig | None = None, *, source
     if limit is not None and limit < 1:
         raise ValueError(f"limit must be >= 1 scan, got {limit}")
     path = Path(path)
-    if path.suffix == ".mcap" and not path.is_dir():
+    if recording_kind(path) == "mcap":  # (an unknown kind is said before any progress bar starts)
         from runtime.inputs import check_mcap
 
         check_mcap(path)  # empty, not MCAP, or cut short: say so (and how to repair) instead of a partial replay

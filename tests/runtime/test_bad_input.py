@@ -148,3 +148,28 @@ def test_replay_of_an_empty_or_garbage_file_says_it_is_not_a_recording(tmp_path,
 def test_replay_limit_must_be_positive(tmp_path, capsys):
     rc, err = run(capsys, "replay", str(recording(tmp_path / "rec.mcap")), "--limit", "-3")
     assert rc == 2 and "--limit must be >= 1" in one_line(err)
+
+
+def test_replay_of_a_file_of_another_kind_says_so_before_any_progress_bar(tmp_path, capsys):
+    other = tmp_path / "notes.txt"
+    other.write_text("not a recording")
+    rc, err = run(capsys, "replay", str(other))  # with the progress bar on
+    assert rc != 0 and "unknown file kind (expected .mcap, .bag, .db3 or a ROS 2 bag directory)" in one_line(err)
+
+
+# -- worlds, routes, seeds, recordings named on any command ---------------------------------------------------
+@pytest.mark.parametrize("argv, says", [
+    (["glass", "map", "--world", "nope", "--out", "{tmp}"], "no built-in world named 'nope'"),
+    (["pose", "bench", "--world", "office", "--route", "nope"], "world 'office' has no route 'nope'"),
+    # met in a worker process (a WorldFileError that could not be unpickled broke the pool)
+    (["glass", "experiment", "--world", "nope", "--trials", "2", "--workers", "2", "--out", "{tmp}"],
+     "no built-in world named 'nope'"),
+    (["eval", "--worlds", "office,nope", "--generated", "0", "--parts", "pose", "--out", "{tmp}"],
+     "no built-in world named 'nope'"),
+    (["bench", "--recording", "{tmp}/none.mcap", "--pinned-runs", "1"], "{tmp}/none.mcap: no such file"),
+    (["sim", "generate", "--seed", "-5", "--out", "{tmp}/w.toml"], "a seed is an integer >= 0, got -5"),
+    (["pose", "eval", "--seeds=-2", "--out", "{tmp}"], "seeds are integers >= 0, got -2"),
+])
+def test_a_bad_world_route_seed_or_recording_anywhere_is_one_line_and_status_2(tmp_path, capsys, argv, says):
+    rc, err = run(capsys, *[a.format(tmp=tmp_path) for a in argv])
+    assert rc == 2 and says.format(tmp=tmp_path) in err.splitlines()[-1]
