@@ -105,7 +105,9 @@ class MappingConfig:
                                "(each key scan, at the pose its match gave) or 'all' (every scan; between key scans "
                                "the pose comes from odometry since the last match); p(glass) per beam and the glass "
                                "hits kept occupied come from every scan either way")
-    glass_weighting: bool = setting(False, "scan matching down-weights beams ending on likely glass (the glass map)")
+    glass_weighting: bool = setting(True, "scan matching down-weights beams seen through cells the glass map "
+                                    "believes are glass (what lies behind a pane, and mirror images: ghost points "
+                                    "behind it)")
     deskew: bool = setting(True, "undo the robot's motion during each laser sweep with the odometry before scan "
                             "matching (a real laser sweeps its 270 deg in ~19 ms; the demo's emulated laser "
                             "does not, so the demo turns this off)")

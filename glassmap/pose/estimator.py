@@ -136,10 +136,11 @@ class EstimatorConfig:
         repetitive corridor, which disagree with each other or fit no better than the prediction): the track
         stays ``degraded`` (logged as a warning), the estimate follows odometry with its growing covariance,
         and the rejected scans stay out of the map.
-    glass_weighting: down-weight beams ending on likely glass (``"glass"`` layer of the grid, log-odds);
-        glass_min_weight is the weight at p(glass) = 1 (linear from 1 at p = 0.5); behind_glass_weight
+    glass_weighting: glass-aware matching from the ``"glass"`` layer of the grid (log-odds): behind_glass_weight
         multiplies the weight of beams that pass a believed-glass cell more than glass_behind_margin (m)
-        before their end (through-glass returns and mirror ghosts; 1 turns it off). See glass_weights.
+        before their end (through-glass returns and mirror ghosts; 1 turns it off); glass_min_weight is the
+        weight of a beam ending on a cell of p(glass) = 1 (linear from 1 at p = 0.5; 1, the default, leaves
+        beams ending on glass as they are). See glass_weights.
     protect_glass: cells with p(glass) above glass_protect_p are not cleared by beams passing through.
     integrate: integrate each key scan into the occupancy grid at the corrected pose.
     subcell_walls: keep the mean end-point position per cell (layers ``pose_hit_*``) and measure the
@@ -186,7 +187,7 @@ class EstimatorConfig:
     relocalise_lead: float = 0.5
     alias_min_shift: float = 0.1
     glass_weighting: bool = False
-    glass_min_weight: float = 0.1
+    glass_min_weight: float = 1.0
     behind_glass_weight: float = 0.2
     glass_behind_margin: float = 0.15
     protect_glass: bool = False
