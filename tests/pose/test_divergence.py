@@ -436,3 +436,21 @@ def test_a_match_at_an_extrapolated_stamp_does_not_keep_the_extrapolation_error(
     est.predict(Odometry(stamp=0.9, x=0.0, y=0.0, yaw=0.0, v=0.0, omega=0.0))
     e = est.update(make_scan(segs, compose(true, est.mount), stamp=0.9, noise=0.01, rng=rng))
     assert abs(e.yaw) < 3.0 * np.sqrt(e.covariance[2, 2]) and abs(e.yaw) < 0.0015
+
+
+def test_the_runtime_down_weights_beams_seen_through_glass_only():
+    """The runtime's default (mapping.glass_weighting, EstimatorConfig.glass_min_weight = 1): a beam behind a
+    believed pane (ghost) gets behind_glass_weight, a beam ending on the pane keeps its full weight."""
+    from runtime.config import MappingConfig
+    from runtime.processor import MappingProcessor
+
+    est = MappingProcessor(MappingConfig()).estimator
+    assert est.config.glass_weighting
+    g = est.occupancy.grid
+    if "glass" not in g.layer_names:
+        g.add_layer("glass", 0.0, np.float32)
+    for y in np.arange(-0.5, 0.51, 0.05):
+        ix, iy = g.world_to_cell(np.array([2.0, y]))
+        g["glass"][iy, ix] = np.log(0.95 / 0.05)
+    w = est.glass_weights(np.zeros(3), np.zeros(3), np.array([1.5, 2.01, 3.5]))
+    assert w[:2].tolist() == [1.0, 1.0] and w[2] == pytest.approx(est.config.behind_glass_weight)
