@@ -187,16 +187,13 @@ def _eval(args: argparse.Namespace) -> int:
 
 def _check_worlds(worlds: list[str], route: str | None) -> None:
     """Load every world and look its route up before the first run (a typo stops the command at once, not
-    after hours of runs)."""
-    from glassmap.sim.world import WorldFileError, load_world
+    after hours of runs: WorldFileError, RouteError)."""
+    from glassmap.sim.world import load_world
 
     if not worlds:
         raise SystemExit("error: --worlds names no world")
     for w in worlds:
-        try:
-            load_world(w).route(route)
-        except (WorldFileError, ValueError) as e:
-            raise SystemExit(f"error: {e}") from None
+        load_world(w).route(route)
 
 
 _CLASSIFIER = None  # the shipped classifier, loaded once per process for --glass-weighting online
