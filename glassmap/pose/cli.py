@@ -36,7 +36,8 @@ def register(subparsers) -> None:
     e.add_argument("--route", default="default",
                    help="route name; 'default' = each world's default route (default: %(default)s)")
     e.add_argument("--glass-weighting", choices=["off", "online", "oracle"], default="off",
-                   help="down-weight beams ending on glass cells and beams seen through glass (mirror ghosts): "
+                   help="glass-aware matching as the runtime runs it (beams seen through believed glass, i.e. "
+                   "mirror ghosts and what lies behind a pane, down-weighted): "
                    "'online' builds the glass map as the runtime does (classifier + glass mapper at the "
                    "estimated poses), 'oracle' writes the true glass cells into the grid's glass layer first "
                    "(the best case); default off")
