@@ -834,9 +834,10 @@ class PoseEstimator:
         r = np.where(np.isfinite(ranges), ranges, 0.0)
         a = laser_pose[2] + angles
         u = np.stack([np.cos(a), np.sin(a)], axis=1)
-        p = self.glass_probability_at(laser_pose[:2] + r[:, None] * u)
-        k = np.clip(2.0 * p - 1.0, 0.0, 1.0)
-        w = 1.0 - (1.0 - self.config.glass_min_weight) * k
+        w = np.ones(r.size)
+        if self.config.glass_min_weight < 1.0:  # (at 1, the default, the end points' p(glass) changes nothing)
+            p = self.glass_probability_at(laser_pose[:2] + r[:, None] * u)
+            w = 1.0 - (1.0 - self.config.glass_min_weight) * np.clip(2.0 * p - 1.0, 0.0, 1.0)
         if self.config.behind_glass_weight < 1.0 and r.size:
             g = self.occupancy.grid
             reach = np.maximum(r - self.config.glass_behind_margin, 0.0)

@@ -338,15 +338,21 @@ def test_consistent_driving_stays_ok():
     assert all(e.status == "ok" for e, _ in out) and est.stats.gated == 0
 
 
+def _believed_pane_at_2m(est) -> None:
+    """p(glass) 0.95 in the estimator's glass layer along x = 2 m, y in [-0.5, 0.5] m (map frame)."""
+    g = est.occupancy.grid
+    if "glass" not in g.layer_names:
+        g.add_layer("glass", 0.0, np.float32)
+    for y in np.arange(-0.5, 0.51, 0.05):
+        ix, iy = g.world_to_cell(np.array([2.0, y]))
+        g["glass"][iy, ix] = np.log(0.95 / 0.05)
+
+
 def test_beams_seen_through_believed_glass_are_down_weighted():
     """A beam ending behind a pane the glass map believes in (a through-glass return or a mirror ghost) gets
     behind_glass_weight; one ending in front of it or on it does not."""
     est = PoseEstimator(EstimatorConfig(glass_min_weight=0.1, behind_glass_weight=0.2))
-    g = est.occupancy.grid
-    g.add_layer("glass", 0.0, np.float32)
-    for y in np.arange(-0.5, 0.51, 0.05):
-        ix, iy = g.world_to_cell(np.array([2.0, y]))
-        g["glass"][iy, ix] = np.log(0.95 / 0.05)
+    _believed_pane_at_2m(est)
     w = est.glass_weights(np.zeros(3), np.zeros(3), np.array([1.5, 2.01, 3.5]))
     assert w[0] == 1.0
     assert w[1] == pytest.approx(1 - 0.9 * 0.9, abs=1e-6)  # on the pane: the end-point rule only
@@ -446,11 +452,6 @@ def test_the_runtime_down_weights_beams_seen_through_glass_only():
 
     est = MappingProcessor(MappingConfig()).estimator
     assert est.config.glass_weighting
-    g = est.occupancy.grid
-    if "glass" not in g.layer_names:
-        g.add_layer("glass", 0.0, np.float32)
-    for y in np.arange(-0.5, 0.51, 0.05):
-        ix, iy = g.world_to_cell(np.array([2.0, y]))
-        g["glass"][iy, ix] = np.log(0.95 / 0.05)
+    _believed_pane_at_2m(est)
     w = est.glass_weights(np.zeros(3), np.zeros(3), np.array([1.5, 2.01, 3.5]))
     assert w[:2].tolist() == [1.0, 1.0] and w[2] == pytest.approx(est.config.behind_glass_weight)
