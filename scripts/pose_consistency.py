@@ -27,6 +27,7 @@ import numpy as np
 
 from glassmap.pose.estimator import EstimatorConfig
 from glassmap.pose.evaluate import metrics, run_estimator
+from glassmap.sim.world import WorldFileError, load_world
 
 NEES_BAND = (1.5, 6.0)
 INSIDE_MIN = 0.85
@@ -104,6 +105,11 @@ def main() -> int:
     ap.add_argument("--out", default="")
     args = ap.parse_args()
     _config(args.set)  # fail early on a bad override
+    try:  # and on a world that does not load (in a worker it would break the pool)
+        for w in args.worlds.split(","):
+            load_world(w)
+    except WorldFileError as e:
+        raise SystemExit(f"error: {e}") from None
     if args.cache:
         os.makedirs(args.cache, exist_ok=True)
     jobs = [(w, args.route, s, args.set, args.cache, args.glass_online)
