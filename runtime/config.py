@@ -106,8 +106,9 @@ class MappingConfig:
                                "the pose comes from odometry since the last match); p(glass) per beam and the glass "
                                "hits kept occupied come from every scan either way")
     glass_weighting: bool = setting(True, "scan matching down-weights beams seen through cells the glass map "
-                                    "believes are glass (what lies behind a pane, and mirror images: ghost points "
-                                    "behind it)")
+                                    "believes are glass: what lies behind a pane, and the mirror images (ghost "
+                                    "points) of panes the map holds as glass; panes seen only at grazing incidence "
+                                    "are not in the glass map, so most mirror images are not caught")
     deskew: bool = setting(True, "undo the robot's motion during each laser sweep with the odometry before scan "
                             "matching (a real laser sweeps its 270 deg in ~19 ms; the demo's emulated laser "
                             "does not, so the demo turns this off)")

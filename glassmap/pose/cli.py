@@ -36,8 +36,8 @@ def register(subparsers) -> None:
     e.add_argument("--route", default="default",
                    help="route name; 'default' = each world's default route (default: %(default)s)")
     e.add_argument("--glass-weighting", choices=["off", "online", "oracle"], default="off",
-                   help="glass-aware matching as the runtime runs it (beams seen through believed glass, i.e. "
-                   "mirror ghosts and what lies behind a pane, down-weighted): "
+                   help="glass-aware matching as the runtime runs it (beams seen through believed glass "
+                   "down-weighted: what lies behind a pane, and mirror ghosts of panes the map holds as glass): "
                    "'online' builds the glass map as the runtime does (classifier + glass mapper at the "
                    "estimated poses), 'oracle' writes the true glass cells into the grid's glass layer first "
                    "(the best case); default off")
