@@ -4,12 +4,13 @@
 seeds 1000-1999); on test worlds (seeds 0-99) it only reports.
 
 Usage: .venv/bin/python scripts/pose_consistency.py WORLD.toml[,WORLD.toml...] [--seeds 0-2] [--route short]
-           [--set map_uncertainty=off] [--glass-online] [--workers 1] [--cache DIR] [--out runs.csv]
+           [--set map_uncertainty=off] [--glass-online] [--drop-ghosts] [--workers 1] [--cache DIR] [--out runs.csv]
 
 ``--set`` overrides EstimatorConfig fields (numbers, booleans or words; nested ones dotted: matcher.voxel=0.1);
 ``--glass-online`` builds the glass map as the runtime does (classifier + glass mapper at the estimated poses) and
 turns glass-aware matching on (``glass_weighting``; its other fields with ``--set``), as ``glassmap pose eval
---glass-weighting online``;
+--glass-weighting online``; ``--drop-ghosts`` removes every mirror-image return (the simulator's truth) before the
+estimator sees the run: a perfect ghost detector, for comparison;
 ``--cache`` keeps the simulated runs as .npz files so that variants of the estimator are compared on the same
 runs without simulating again.
 """
@@ -60,7 +61,7 @@ def _override(obj, path: list[str], value: str):
 
 
 def _one(job: tuple) -> dict:
-    world, route, seed, sets, cache, glass_online = job
+    world, route, seed, sets, cache, glass_online, drop_ghosts = job
     from glassmap.sim.dataset import SimRun, simulate_run
 
     run = None
@@ -74,6 +75,8 @@ def _one(job: tuple) -> dict:
         run = simulate_run(world, None if route == "default" else route, seed=seed)
         if path:
             run.save(path)
+    if drop_ghosts and run.is_ghost is not None:
+        run.ranges[run.is_ghost] = np.nan
     t = time.perf_counter()
     cfg, clf = _config(sets), None
     if glass_online:
@@ -100,6 +103,7 @@ def main() -> int:
     ap.add_argument("--route", default="short", help="route name, or 'default'")
     ap.add_argument("--set", action="append", default=[], help="EstimatorConfig field=value")
     ap.add_argument("--glass-online", action="store_true", help="online glass map + glass-aware matching")
+    ap.add_argument("--drop-ghosts", action="store_true", help="remove the mirror-image returns (simulator's truth)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", default="")
     ap.add_argument("--out", default="")
@@ -112,7 +116,7 @@ def main() -> int:
         raise SystemExit(f"error: {e}") from None
     if args.cache:
         os.makedirs(args.cache, exist_ok=True)
-    jobs = [(w, args.route, s, args.set, args.cache, args.glass_online)
+    jobs = [(w, args.route, s, args.set, args.cache, args.glass_online, args.drop_ghosts)
             for w in args.worlds.split(",") for s in _seeds(args.seeds)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
