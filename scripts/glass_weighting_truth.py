@@ -9,7 +9,7 @@ glass-aware matching down-weights").
 Usage: .venv/bin/python scripts/glass_weighting_truth.py WORLD [--seed 0] [--route default] [--cache DIR]
            [--set field=value ...]
 
-Use validation worlds (seeds 1000-1999) or the built-in ones, never test worlds. ``--cache`` and ``--set`` as in
+A diagnostic: nothing is chosen from it on test worlds (seeds 0-99), only reported. ``--cache`` and ``--set`` as in
 scripts/pose_consistency.py (same file names, so its cached runs are reused).
 """
 
@@ -23,12 +23,12 @@ from dataclasses import replace
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from pose_consistency import _config  # noqa: E402
+from pose_consistency import _config, load_run  # noqa: E402
 
+from glassmap.cli_args import seed_number  # noqa: E402
 from glassmap.classifier import GlassClassifier  # noqa: E402
 from glassmap.pose import estimator as est_mod  # noqa: E402
 from glassmap.pose.evaluate import run_estimator  # noqa: E402
-from glassmap.sim.dataset import SimRun, simulate_run  # noqa: E402
 from glassmap.sim.world import WorldFileError, load_world  # noqa: E402
 
 KINDS = ("mirror ghost", "real surface through a pane", "the pane itself", "anything else")
@@ -51,7 +51,7 @@ def _path_maxima(grid, layer: np.ndarray, laser_pose: np.ndarray, angles: np.nda
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("world")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=seed_number, default=0)
     ap.add_argument("--route", default="default", help="route name, or 'default'")
     ap.add_argument("--cache", default="")
     ap.add_argument("--set", action="append", default=[], help="EstimatorConfig field=value")
@@ -62,14 +62,7 @@ def main() -> int:
         raise SystemExit(f"error: {e}") from None
     cfg = replace(_config(args.set), glass_weighting=True)
     stem = os.path.splitext(os.path.basename(args.world))[0]
-    path = os.path.join(args.cache, f"{stem}-{args.route}-{args.seed}.npz") if args.cache else ""
-    if path and os.path.exists(path):
-        run = SimRun.load(path)
-    else:
-        run = simulate_run(world, None if args.route == "default" else args.route, seed=args.seed)
-        if path:
-            os.makedirs(args.cache, exist_ok=True)
-            run.save(path)
+    run = load_run(args.world, args.route, args.seed, args.cache)
     if run.is_ghost is None:
         raise SystemExit("error: this run was simulated without mirror images (no ghost truth to compare with)")
     geo = run.geometry

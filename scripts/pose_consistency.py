@@ -60,21 +60,27 @@ def _override(obj, path: list[str], value: str):
     return replace(obj, **{name: new})
 
 
-def _one(job: tuple) -> dict:
-    world, route, seed, sets, cache, glass_online, drop_ghosts = job
+def load_run(world, route: str, seed: int, cache: str):
+    """The simulated run of ``world`` (a name, a path or a World; ``route`` a name or "default"), read from the
+    ``cache`` directory (``<world file stem>-<route>-<seed>.npz``) if there, else simulated (and saved there)."""
     from glassmap.sim.dataset import SimRun, simulate_run
 
-    run = None
-    path = None
+    path = ""
     if cache:
-        stem = os.path.splitext(os.path.basename(world))[0]
+        stem = os.path.splitext(os.path.basename(str(world)))[0]
         path = os.path.join(cache, f"{stem}-{route}-{seed}.npz")
         if os.path.exists(path):
-            run = SimRun.load(path)
-    if run is None:
-        run = simulate_run(world, None if route == "default" else route, seed=seed)
-        if path:
-            run.save(path)
+            return SimRun.load(path)
+    run = simulate_run(world, None if route == "default" else route, seed=seed)
+    if path:
+        os.makedirs(cache, exist_ok=True)
+        run.save(path)
+    return run
+
+
+def _one(job: tuple) -> dict:
+    world, route, seed, sets, cache, glass_online, drop_ghosts = job
+    run = load_run(world, route, seed, cache)
     if drop_ghosts and run.is_ghost is not None:
         run.ranges[run.is_ghost] = np.nan
     t = time.perf_counter()
@@ -114,8 +120,6 @@ def main() -> int:
             load_world(w)
     except WorldFileError as e:
         raise SystemExit(f"error: {e}") from None
-    if args.cache:
-        os.makedirs(args.cache, exist_ok=True)
     jobs = [(w, args.route, s, args.set, args.cache, args.glass_online, args.drop_ghosts)
             for w in args.worlds.split(",") for s in _seeds(args.seeds)]
     t0 = time.perf_counter()
