@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid_jit import free_and_hit_update
+from .grid_jit import beam_walks, free_and_hit_update, scan_reach
+from .grid_jit import hit_margins as _hit_margins
 
 _NO_PROTECT = np.zeros(0, dtype=bool)
 _NO_SEEN = np.zeros(0, dtype=np.uint8)
@@ -167,15 +168,9 @@ def hit_margins(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, hit: np.ndarra
     """Per beam, how far short of its end point it stops clearing (m): ``surface`` for a beam inside a
     continuous surface (see :class:`OccupancyParams`), ``edge`` otherwise. c, s (n,): the beams' direction
     cosines and sines (any one frame); ranges (n,) m; hit (n,) bool: beams with a return."""
-    n, k = ranges.shape[0], EDGE_BEAMS
-    margins = np.full(n, edge)
-    if n > 2 * k and surface != edge:
-        r = np.where(hit, ranges, np.nan)
-        x, y = r * c, r * s
-        with np.errstate(invalid="ignore"):
-            inside = np.hypot(x[2 * k:] - x[:-2 * k], y[2 * k:] - y[:-2 * k]) < EDGE_CHORD
-        margins[k:-k][inside] = surface
-    return margins
+    f64 = np.float64
+    return _hit_margins(np.ascontiguousarray(c, f64), np.ascontiguousarray(s, f64), np.ascontiguousarray(ranges, f64),
+                        np.ascontiguousarray(hit, np.bool_), float(edge), float(surface), EDGE_BEAMS, EDGE_CHORD)
 
 
 class OccupancyGrid:
@@ -223,12 +218,20 @@ class OccupancyGrid:
         returns it; the callable is evaluated after the grid has grown to hold this scan. Returns the
         number of beams used.
         """
-        pose, angles, ranges, hit, clear, free_len, c, s = self._scan_geometry(laser_pose, angles, ranges,
-                                                                               range_max)
-        if not clear.any():
-            return 0
+        return self.integrate_scan(laser_pose, angles, ranges, range_max, protect)[0]
+
+    def integrate_scan(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
+                       range_max: float = 30.0,
+                       protect: np.ndarray | Callable[[], np.ndarray] | None = None) -> tuple[int, np.ndarray]:
+        """:meth:`integrate` (same arguments), returning also the scan's map-frame end points (2, n) m (x row,
+        y row; the laser position for beams without a return within ``range_max``)."""
+        pose, ranges, c, s = self._scan_directions(laser_pose, angles, ranges)
         p = self.params
-        ends = self._grow_for(pose, ranges, hit, clear, free_len, c, s)
+        hit, clear, free_len, ends, n_clear, box = scan_reach(c, s, ranges, pose[0], pose[1], float(range_max),
+                                                              p.max_free_range, p.no_return_range)
+        if not n_clear:
+            return 0, ends
+        self._grow_to(box)
         g = self.grid
         w = g.shape[1]
 
@@ -242,63 +245,53 @@ class OccupancyGrid:
         # length), stopping hit_margin or surface_margin (at least one cell) short of a hit; each cell crossed
         # is lowered once per scan, each hit cell then raised once (glassmap/grid_jit.py).
         step = 0.7 * g.resolution
-        margins = hit_margins(c, s, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
-        lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
-        counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
+        ox, oy = float(g.origin[0]), float(g.origin[1])
+        dx, dy, counts, hit_cells = beam_walks(c, s, ranges, hit, clear, free_len, ends, ox, oy, g.resolution, w,
+                                               step, max(p.hit_margin, g.resolution),
+                                               max(p.surface_margin, g.resolution), EDGE_BEAMS, EDGE_CHORD)
         lo = self.log_odds
-        fx = np.float32((pose[0] - g.origin[0]) / g.resolution)
-        fy = np.float32((pose[1] - g.origin[1]) / g.resolution)
-        hc = g.world_to_cell(ends[hit])
+        fx = np.float32((pose[0] - ox) / g.resolution)
+        fy = np.float32((pose[1] - oy) / g.resolution)
         if self._seen.shape[0] != lo.size:
             self._seen = np.zeros(lo.size, np.uint8)
         free_and_hit_update(lo.reshape(-1), _NO_PROTECT if protect is None else protect.reshape(-1), self._seen,
-                            w, fx, fy, (c[clear] / g.resolution).astype(np.float32),
-                            (s[clear] / g.resolution).astype(np.float32), counts, np.float32(step),
-                            np.float32(p.l_free), hc[:, 1] * w + hc[:, 0], np.float32(p.l_occ),
-                            np.float32(p.l_min), np.float32(p.l_max))
-        return int(clear.sum())
+                            w, fx, fy, dx, dy, counts, np.float32(step), np.float32(p.l_free), hit_cells,
+                            np.float32(p.l_occ), np.float32(p.l_min), np.float32(p.l_max))
+        return n_clear, ends
 
     def ensure_scan_extent(self, laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
                            range_max: float = 30.0) -> bool:
         """Grow the grid to everything :meth:`integrate` would touch for this scan (same arguments), e.g.
         before writing per-end-point layers. Returns True if it grew."""
-        pose, _, ranges, hit, clear, free_len, c, s = self._scan_geometry(laser_pose, angles, ranges, range_max)
-        if not clear.any():
+        pose, ranges, c, s = self._scan_directions(laser_pose, angles, ranges)
+        p = self.params
+        n_clear, box = scan_reach(c, s, ranges, pose[0], pose[1], float(range_max), p.max_free_range,
+                                  p.no_return_range)[4:]
+        if not n_clear:
             return False
         generation = self.grid.generation
-        self._grow_for(pose, ranges, hit, clear, free_len, c, s)
+        self._grow_to(box)
         return self.grid.generation != generation
 
-    def _scan_geometry(self, laser_pose, angles, ranges, range_max):
-        """Validated arrays of one scan: pose, angles, ranges, beams with a hit, beams that clear space, how
-        far each clears (m), and the beam directions (cos, sin) in the map frame."""
+    @staticmethod
+    def _scan_directions(laser_pose, angles, ranges) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Validated arrays of one scan: pose (3,), ranges (n,) m and the beam directions (cos, sin) (n,) in
+        the map frame."""
         angles = np.asarray(angles, dtype=np.float64)
-        ranges = np.asarray(ranges, dtype=np.float64)
+        ranges = np.ascontiguousarray(ranges, dtype=np.float64)
         if angles.shape != ranges.shape:
             raise ValueError(f"angles {angles.shape} and ranges {ranges.shape} differ in shape")
         pose = np.asarray(laser_pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        if pose.shape != (3,) or not all(math.isfinite(v) for v in pose.tolist()):
             raise ValueError(f"laser_pose must be 3 finite numbers, got {laser_pose!r}")
-        p = self.params
-        with np.errstate(invalid="ignore"):
-            hit = np.isfinite(ranges) & (ranges <= range_max)
-        clear = hit | (np.isposinf(ranges) & (p.no_return_range > 0))
-        free_len = np.where(hit, ranges.clip(0.0, p.max_free_range), p.no_return_range)
-        return pose, angles, ranges, hit, clear, free_len, np.cos(pose[2] + angles), np.sin(pose[2] + angles)
+        yaw = pose[2] + angles
+        return pose, ranges, np.cos(yaw), np.sin(yaw)
 
-    def _grow_for(self, pose, ranges, hit, clear, free_len, c, s) -> np.ndarray:
-        """Grow the grid to the box of the scan's end points and cleared space (1 m margin); returns the
-        map-frame end points (n, 2) (the laser position for beams without a hit)."""
-        r = np.where(hit, ranges, 0.0)
-        ends = np.empty((r.shape[0], 2))
-        np.multiply(c, r, out=ends[:, 0])
-        np.multiply(s, r, out=ends[:, 1])
-        ends += pose[:2]
-        # the box by 1-D reductions (an axis-0 reduction of an (n, 2) array costs several times more)
-        xs = np.concatenate([ends[hit, 0], pose[0] + c[clear] * free_len[clear], pose[:1]])
-        ys = np.concatenate([ends[hit, 1], pose[1] + s[clear] * free_len[clear], pose[1:2]])
-        self.grid.ensure_contains(np.array([xs.min(), ys.min()]) - 1.0, np.array([xs.max(), ys.max()]) + 1.0)
-        return ends
+    def _grow_to(self, box: np.ndarray) -> None:
+        """Grow the grid to the box (x min, y min, x max, y max) m of :func:`~glassmap.grid_jit.scan_reach`
+        with a 1 m margin."""
+        x0, y0, x1, y1 = box.tolist()
+        self.grid.ensure_contains((x0 - 1.0, y0 - 1.0), (x1 + 1.0, y1 + 1.0))
 
     def save_pgm_yaml(self, stem: str) -> tuple[str, str]:
         """Write ``stem.pgm`` + ``stem.yaml`` in the ROS map_server format (trinary, 254 free, 0 occupied,

@@ -7,11 +7,116 @@ log-odds are the same to the last bit. Cells are flat indices ``iy * w + ix`` of
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .jit import njit
 
 _jit = njit(cache=True, nogil=True, error_model="numpy")
+
+
+@_jit
+def scan_reach(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, px: float, py: float, range_max: float,
+               max_free_range: float, no_return_range: float):
+    """What one scan reaches in the map frame. c, s (n,): the beams' map-frame direction cosines and sines;
+    ranges (n,) m; (px, py): the laser position (m).
+
+    Returns hit (n,) bool: a return within ``range_max`` (finite); clear (n,) bool: the beam clears space
+    (a hit, or no return (+inf) when ``no_return_range`` > 0); free_len (n,) m: how far it clears (its range
+    clipped to [0, ``max_free_range``] for a hit, else ``no_return_range``); ends (2, n) m: end points (x row,
+    y row; the laser position for beams without a hit); the number of clearing beams; and the box (4,) m
+    (x min, y min, x max, y max) around the hits' end points, the clearing beams' reach and the laser
+    (NaN if a coordinate is NaN)."""
+    n = ranges.shape[0]
+    hit = np.empty(n, np.bool_)
+    clear = np.empty(n, np.bool_)
+    free_len = np.empty(n)
+    ends = np.empty((2, n))
+    box = np.array([px, py, px, py])
+    n_clear = 0
+    for b in range(n):
+        r = ranges[b]
+        h = math.isfinite(r) and r <= range_max
+        hit[b] = h
+        rr = r if h else 0.0
+        x = c[b] * rr + px
+        y = s[b] * rr + py
+        ends[0, b], ends[1, b] = x, y
+        clear[b] = h or (r == np.inf and no_return_range > 0)
+        free_len[b] = min(max(r, 0.0), max_free_range) if h else no_return_range
+        if h:
+            _extend(box, x, y)
+        if clear[b]:
+            n_clear += 1
+            _extend(box, px + c[b] * free_len[b], py + s[b] * free_len[b])
+    return hit, clear, free_len, ends, n_clear, box
+
+
+@_jit
+def _extend(box: np.ndarray, x: float, y: float) -> None:
+    """Grow the box (x min, y min, x max, y max) to hold (x, y); a NaN coordinate stays in it (as np.min)."""
+    if box[0] == box[0] and not x >= box[0]:
+        box[0] = x
+    if box[1] == box[1] and not y >= box[1]:
+        box[1] = y
+    if box[2] == box[2] and not x <= box[2]:
+        box[2] = x
+    if box[3] == box[3] and not y <= box[3]:
+        box[3] = y
+
+
+@_jit
+def hit_margins(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, hit: np.ndarray, edge: float, surface: float,
+                k: int, chord: float) -> np.ndarray:
+    """Per beam, how far short of its end point it stops clearing (m): ``surface`` for a beam whose
+    neighbours ``k`` beams either side both have hits less than ``chord`` (m) apart, ``edge`` otherwise.
+    c, s (n,): the beams' direction cosines and sines (any one frame); ranges (n,) m; hit (n,) bool."""
+    n = ranges.shape[0]
+    margins = np.full(n, edge)
+    if n > 2 * k and surface != edge:
+        for b in range(k, n - k):
+            i, j = b - k, b + k
+            if hit[i] and hit[j]:
+                if math.hypot(ranges[j] * c[j] - ranges[i] * c[i], ranges[j] * s[j] - ranges[i] * s[i]) < chord:
+                    margins[b] = surface
+    return margins
+
+
+@_jit
+def beam_walks(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, hit: np.ndarray, clear: np.ndarray,
+               free_len: np.ndarray, ends: np.ndarray, ox: float, oy: float, resolution: float, w: int,
+               step: float, edge: float, surface: float, k: int, chord: float):
+    """The arguments of :func:`free_and_hit_update` for one scan (the outputs of :func:`scan_reach`, the grid's
+    origin (ox, oy) m, resolution m and width ``w`` cells): per clearing beam its direction over the
+    resolution (dx, dy float32) and its number of samples ``step`` (m) apart up to :func:`hit_margins` short
+    of a hit; and the flat cells of the hits' end points."""
+    margins = hit_margins(c, s, ranges, hit, edge, surface, k, chord)
+    n = ranges.shape[0]
+    m = 0
+    n_hit = 0
+    for b in range(n):
+        m += clear[b]
+        n_hit += hit[b]
+    dx = np.empty(m, np.float32)
+    dy = np.empty(m, np.float32)
+    counts = np.empty(m, np.int64)
+    cells = np.empty(n_hit, np.int64)
+    m = 0
+    n_hit = 0
+    for b in range(n):
+        if clear[b]:
+            length = free_len[b] - (margins[b] if hit[b] else 0.0)
+            counts[m] = math.ceil(max(length, 0.0) / step)
+            dx[m] = np.float32(c[b] / resolution)
+            dy[m] = np.float32(s[b] / resolution)
+            m += 1
+        if hit[b]:
+            ix = np.int64(math.floor((ends[0, b] - ox) / resolution))
+            iy = np.int64(math.floor((ends[1, b] - oy) / resolution))
+            cells[n_hit] = iy * w + ix
+            n_hit += 1
+    return dx, dy, counts, cells
 
 
 @_jit

@@ -222,25 +222,31 @@ class GlassMapper:
             return self.glass.glass_mask(self.config.protect_threshold)
         return None
 
-    def integrate(self, scan: Scan, pose: np.ndarray, *, angles: np.ndarray | None = None) -> None:
+    def integrate(self, scan: Scan, pose: np.ndarray, *, angles: np.ndarray | None = None) -> np.ndarray:
         """Occupancy update of one scan at the laser pose (map frame) with the configured protection.
-        angles: ``scan.angles`` if the caller has them already."""
+        angles: ``scan.angles`` if the caller has them already. Returns the map-frame end points (2, n) m of
+        the scan's beams (x row, y row; :meth:`~glassmap.grid.OccupancyGrid.integrate_scan`)."""
         # the mask is taken after integrate() has grown the grid to hold the scan
         a = scan.angles if angles is None else angles
-        self.occupancy.integrate(pose, a, scan.ranges, scan.geometry.range_max, protect=self.protect_mask)
+        return self.occupancy.integrate_scan(pose, a, scan.ranges, scan.geometry.range_max,
+                                             protect=self.protect_mask)[1]
 
     def mark_glass_hits(self, beams: BeamGlass, use: np.ndarray, scan: Scan, laser_pose: np.ndarray, *,
                         ends: tuple[np.ndarray, np.ndarray] | None = None) -> int:
         """For beams classified as glass (p > glass_hit_threshold): raise the occupancy log-odds of their
         end-point cells to at least ``l_occ`` (``MapperConfig.glass_hits_occupy``) and record the cells in the
         ``<layer>_hits`` layer (``protect="hits"``). ``ends``: :func:`end_points` of ``use`` at ``laser_pose``
-        if the caller has them already. Returns the number of such beams."""
-        glass = beams.p_glass[use] > self.config.glass_hit_threshold
+        if the caller has them already (else those of the glass beams are computed). Returns the number of
+        such beams."""
+        glass = use & (beams.p_glass > self.config.glass_hit_threshold)  # p_glass is NaN off the classified beams
         n_sel = int(np.count_nonzero(glass))
         if not n_sel:
             return 0
-        ex, ey = end_points(laser_pose, scan.angles, scan.ranges, use) if ends is None else ends
-        x, y = ex[glass], ey[glass]
+        if ends is None:
+            x, y = end_points(laser_pose, scan.angles, scan.ranges, glass)
+        else:
+            glass = glass[use]
+            x, y = ends[0][glass], ends[1][glass]
         g = self.grid
         g.ensure_contains(*_box(x, y, 1.0))
         # the cells of MapGrid.world_to_cell; log-odds raised as by np.maximum (compiled: glassmap/grid_jit.py),
@@ -293,13 +299,15 @@ class GlassMapper:
         if sig is not None and not (finite_sigma := np.isfinite(sig)).all():
             beams.n_bad += int(np.count_nonzero(use & ~finite_sigma))
             use &= finite_sigma
+        # the end points of the beams ``use`` at occ_pose: the occupancy update's, when it ran
+        ends = None
         if update_occupancy:
-            self.integrate(scan, occ_pose, angles=angles)
-        ends = end_points(pose, angles, scan.ranges, use)
+            pts = self.integrate(scan, occ_pose, angles=angles)
+            ends = (pts[0][use], pts[1][use])
         if self.config.glass_hits_occupy or self.config.protect == "hits":
-            self.mark_glass_hits(beams, use, scan, occ_pose, ends=ends if occ_pose is pose else None)
+            self.mark_glass_hits(beams, use, scan, occ_pose, ends=ends)
         if register:
-            beams.n_registered = self.register(beams, use, scan, pose, sig, ends=ends)
+            beams.n_registered = self.register(beams, use, scan, pose, sig, ends=ends if occ_pose is pose else None)
         if beams.n_ranged == 0:
             self.skipped_scans += 1
         return beams

@@ -4,18 +4,39 @@ growth of the grid, values clamped at the limits (only the cells a scan changes 
 
 import numpy as np
 
-from glassmap.grid import MapGrid, OccupancyGrid, OccupancyParams, hit_margins
+from glassmap.grid import EDGE_BEAMS, EDGE_CHORD, MapGrid, OccupancyGrid, OccupancyParams, hit_margins
 from tests.pose.synth import make_scan, room_with_corner
 
 
-def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None) -> int:
-    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernel (issue 19e), with the hit margins."""
-    pose, angles, ranges, hit, clear, free_len, c, s = occ._scan_geometry(laser_pose, angles, ranges, range_max)
-    if not clear.any():
-        return 0
+def numpy_hit_margins(c, s, ranges, hit, edge, surface):
+    """``glassmap.grid.hit_margins`` before its kernel."""
+    n, k = ranges.shape[0], EDGE_BEAMS
+    margins = np.full(n, edge)
+    if n > 2 * k and surface != edge:
+        r = np.where(hit, ranges, np.nan)
+        x, y = r * c, r * s
+        with np.errstate(invalid="ignore"):
+            inside = np.hypot(x[2 * k:] - x[:-2 * k], y[2 * k:] - y[:-2 * k]) < EDGE_CHORD
+        margins[k:-k][inside] = surface
+    return margins
+
+
+def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30.0, protect=None):
+    """``OccupancyGrid.integrate`` (and its ``_grow_for``) before the kernels (issue 19e), with the hit margins;
+    returns also the end points (2, n) as ``integrate_scan``."""
+    angles = np.asarray(angles, dtype=np.float64)
+    ranges = np.asarray(ranges, dtype=np.float64)
+    pose = np.asarray(laser_pose, dtype=np.float64)
     p = occ.params
+    with np.errstate(invalid="ignore"):
+        hit = np.isfinite(ranges) & (ranges <= range_max)
+    clear = hit | (np.isposinf(ranges) & (p.no_return_range > 0))
+    free_len = np.where(hit, ranges.clip(0.0, p.max_free_range), p.no_return_range)
+    c, s = np.cos(pose[2] + angles), np.sin(pose[2] + angles)
     u = np.stack([c, s], axis=1)
     ends = pose[:2] + u * np.where(hit, ranges, 0.0)[:, None]
+    if not clear.any():
+        return 0, ends.T
     reach = pose[:2] + u * free_len[:, None]
     pts = np.concatenate([ends[hit], reach[clear], pose[None, :2]])
     occ.grid.ensure_contains(pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0)
@@ -24,7 +45,8 @@ def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30
     if callable(protect):
         protect = protect()
     step = 0.7 * g.resolution
-    margins = hit_margins(c, s, ranges, hit, max(p.hit_margin, g.resolution), max(p.surface_margin, g.resolution))
+    margins = numpy_hit_margins(c, s, ranges, hit, max(p.hit_margin, g.resolution),
+                                max(p.surface_margin, g.resolution))
     lengths = free_len[clear] - np.where(hit[clear], margins[clear], 0.0)
     counts = np.ceil(np.maximum(lengths, 0.0) / step).astype(np.int64)
     lo = occ.log_odds
@@ -44,7 +66,7 @@ def numpy_integrate(occ: OccupancyGrid, laser_pose, angles, ranges, range_max=30
         hc = g.world_to_cell(ends[hit])
         lo.ravel()[np.unique(hc[:, 1] * w + hc[:, 0])] += p.l_occ
     np.clip(lo, p.l_min, p.l_max, out=lo)
-    return int(clear.sum())
+    return int(clear.sum()), ends.T
 
 
 def test_integrate_equals_the_numpy_ray_walk_to_the_bit():
@@ -63,10 +85,25 @@ def test_integrate_equals_the_numpy_ray_walk_to_the_bit():
             r[rng.random(r.size) < 0.02] *= 8.0  # long beams: growth, and beyond max_free_range
             # a protect mask (taken after the grid grew) on some scans, the same for both
             mask = (lambda g, seed=i: np.random.default_rng(seed).random(g.shape) < 0.3) if i % 2 else None
-            n_a = a.integrate(pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(a.grid)))
-            n_b = numpy_integrate(b, pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(b.grid)))
+            n_a, ends_a = a.integrate_scan(pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(a.grid)))
+            n_b, ends_b = numpy_integrate(b, pose, scan.angles, r, 20.0, protect=mask and (lambda: mask(b.grid)))
             assert n_a == n_b and a.grid.shape == b.grid.shape
+            np.testing.assert_array_equal(ends_a, ends_b)
             np.testing.assert_array_equal(a.grid.origin, b.grid.origin)
             np.testing.assert_array_equal(a.log_odds, b.log_odds)
             assert a._seen.size == a.log_odds.size and not a._seen.any()  # the scratch is left clean
         assert (a.log_odds == params.l_min).any() and (a.log_odds == params.l_max).any()  # limits reached
+
+
+def test_hit_margins_equal_numpy_to_the_bit():
+    rng = np.random.default_rng(5)
+    for n in (0, 5, 6, 7, 40, 1081):
+        a = np.sort(rng.uniform(-2.4, 2.4, n))
+        c, s = np.cos(a), np.sin(a)
+        ranges = rng.uniform(0.1, 3.0, n)
+        ranges[rng.random(n) < 0.3] = ranges[0] if n else 0.0  # flat stretches: neighbours close together
+        hit = rng.random(n) < 0.8
+        ranges[~hit & (rng.random(n) < 0.5)] = np.nan
+        for edge, surface in ((0.2, 0.1), (0.2, 0.2), (0.05, 0.3)):
+            np.testing.assert_array_equal(hit_margins(c, s, ranges, hit, edge, surface),
+                                          numpy_hit_margins(c, s, ranges, hit, edge, surface))
