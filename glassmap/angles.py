@@ -132,14 +132,12 @@ def split_merge(beam_angles: np.ndarray, ranges: np.ndarray, params: AngleParams
     p = params
     a, r = _checked(beam_angles, ranges)
     trig = beam_trig(a)  # np.cos / np.sin of the angles, kept from the last scan with the same angles
-    at, cosang, sid, normals, cen, counts = split_merge_cosines(
+    at, cosang, segment, normals, cen, counts = split_merge_cosines(
         trig.cos, trig.sin, r, p.max_range, abs(trig.median_step), math.sin(p.break_lambda), 3.0 * p.break_sigma,
         p.max_index_gap, p.split_tol, p.split_tol_rel, p.max_split_iterations, math.cos(p.merge_angle), p.link_lag,
         p.min_points, p.min_length, p.max_rms)
     incidence = np.full(a.shape[0], np.nan)
-    incidence[at] = np.arccos(np.clip(cosang, 0.0, 1.0, out=cosang), out=cosang)
-    segment = np.full(a.shape[0], -1, dtype=np.int64)
-    segment[at] = sid
+    incidence[at] = np.arccos(cosang, out=cosang)
     return IncidenceResult(incidence, segment, normals, cen, counts)
 
 

@@ -372,9 +372,9 @@ def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray
     Breakpoints cut runs; each run is split by the iterative end-point fit and adjacent collinear pieces
     are merged; when ``link_lag`` > 0 the points of segments too poor to give angles are chained
     (:func:`chain_points`) and split and merged again, the first pass's good segments keeping their fits.
-    Returns, for the points on good segments: their beam, |cos| of the angle between beam and normal, and
-    their segment's id among the good ones; and the good segments' normals (k, 2), centroids (k, 2) m and
-    point counts (k,)."""
+    Returns, for the points on good segments: their beam and |cos| of the angle between beam and normal,
+    clipped to [0, 1]; per beam (n,) its good segment's id among the good ones (-1: none); and the good
+    segments' normals (k, 2), centroids (k, 2) m and point counts (k,)."""
     m = 0
     for i in range(ranges.shape[0]):
         if ranges[i] > 0.0 and ranges[i] <= max_range:  # False for NaN; inf > max_range
@@ -385,9 +385,9 @@ def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray
         if ranges[i] > 0.0 and ranges[i] <= max_range:
             idx[m] = i
             m += 1
+    segment = np.full(ranges.shape[0], -1, np.int64)
     if m < min_points:
-        return (np.empty(0, np.int64), np.empty(0), np.empty(0, np.int64), np.empty((0, 2)), np.empty((0, 2)),
-                np.empty(0, np.int64))
+        return np.empty(0, np.int64), np.empty(0), segment, np.empty((0, 2)), np.empty((0, 2)), np.empty(0, np.int64)
     ux, uy, r = cos_a[idx], sin_a[idx], ranges[idx]
     x = ux * r
     y = uy * r
@@ -408,6 +408,10 @@ def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray
             adopt_fits(mom2, cen2, normals2, keep2, mom, cen, normals, keep)
             mom, cen, normals, keep = mom2, cen2, normals2, keep2
     at, cosang, sid = point_cosines(ux, uy, idx, seg, keep, normals)
+    for i in range(at.shape[0]):
+        if cosang[i] > 1.0:  # np.clip(cosang, 0, 1): |cos| >= 0 (or NaN)
+            cosang[i] = 1.0
+        segment[at[i]] = sid[i]
     k = 0
     for s in range(n_seg):
         if keep[s]:
@@ -422,4 +426,4 @@ def split_merge_cosines(cos_a: np.ndarray, sin_a: np.ndarray, ranges: np.ndarray
             out_c[k] = cen[s]
             counts[k] = np.int64(mom[s, 0])
             k += 1
-    return at, cosang, sid, out_n, out_c, counts
+    return at, cosang, segment, out_n, out_c, counts

@@ -1,6 +1,7 @@
-"""Compiled occupancy update of one scan (:meth:`glassmap.grid.OccupancyGrid.integrate`), numba ``njit``.
+"""Compiled occupancy update of one scan (:meth:`glassmap.grid.OccupancyGrid.integrate`) and the per-beam
+passes of the mapper (:class:`glassmap.mapping.GlassMapper`: its beam masks and glass hits), numba ``njit``.
 
-The same float32 operations in the same order as the numpy ray walk it replaced (no fast-math), so the
+The same operations in the same order and precision as the numpy code they replaced (no fast-math), so the
 log-odds are the same to the last bit. Cells are flat indices ``iy * w + ix`` of a grid of ``h`` rows and
 ``w`` columns. Compiled code is cached on disk (``cache=True``).
 """
@@ -202,3 +203,43 @@ def raise_end_cells(lo: np.ndarray, marks: np.ndarray, x: np.ndarray, y: np.ndar
             lo[c] = floor_value
         if mark:
             marks[c] = True
+
+
+@_jit
+def ranged_beams(r: np.ndarray, range_min: float, range_max: float) -> tuple[np.ndarray, int, int]:
+    """The ranges r (n,) m with NaN where a beam has no usable range (not finite, or outside [range_min,
+    range_max]); the number of usable ranges and the number of NaN ranges."""
+    n = r.shape[0]
+    out = np.empty(n)
+    n_ranged = 0
+    n_nan = 0
+    for b in range(n):
+        v = r[b]
+        if math.isfinite(v) and v >= range_min and v <= range_max:
+            out[b] = v
+            n_ranged += 1
+        else:
+            out[b] = np.nan
+            n_nan += v != v
+    return out, n_ranged, n_nan
+
+
+@_jit
+def classified_beams(incidence: np.ndarray, intensities: np.ndarray,
+                     r: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    """The beams the classifier sees, (n,) bool: a finite incidence angle (rad) and a finite intensity; the
+    numbers of beams with an angle, of beams whose range r (m) is not NaN but whose intensity is not finite,
+    and of beams seen."""
+    n = r.shape[0]
+    use = np.empty(n, np.bool_)
+    n_angle = 0
+    n_bad = 0
+    n_use = 0
+    for b in range(n):
+        angle = math.isfinite(incidence[b])
+        finite_i = math.isfinite(intensities[b])
+        use[b] = angle and finite_i
+        n_angle += angle
+        n_bad += not finite_i and r[b] == r[b]
+        n_use += use[b]
+    return use, n_angle, n_bad, n_use

@@ -19,7 +19,7 @@ import numpy as np
 from .angles import AngleMethod, AngleParams, incidence_angles
 from .glass import GlassMap, GlassParams
 from .grid import MapGrid, OccupancyGrid
-from .grid_jit import raise_end_cells
+from .grid_jit import classified_beams, raise_end_cells, ranged_beams
 from .registration import Aggregation, DecayRef, Method, nearest_occupied_cells, window_evidence
 from .types import Scan
 
@@ -148,27 +148,17 @@ class GlassMapper:
         a = scan.angles if angles is None else angles
         r = scan.ranges
         n = r.shape[0]
-        out = BeamGlass(np.full(n, np.nan), np.full(n, np.nan), n_beams=n)
-        rmax = scan.geometry.range_max
-        with np.errstate(invalid="ignore"):
-            ranged = np.isfinite(r) & (r >= scan.geometry.range_min) & (r <= rmax)
-        out.n_ranged = int(np.count_nonzero(ranged))
-        out.n_bad = int(np.count_nonzero(np.isnan(r)))
-        if out.n_ranged == 0:
-            return out, np.zeros(n, dtype=bool)
-        res = incidence_angles(a, np.where(ranged, r, np.nan), self.config.angle_method,
-                               self.config.angle_params)
-        out.incidence = res.incidence
-        has_angle = np.isfinite(res.incidence)
-        out.n_angle = int(np.count_nonzero(has_angle))
+        rr, n_ranged, n_nan = ranged_beams(r, scan.geometry.range_min, scan.geometry.range_max)
+        if n_ranged == 0:
+            return BeamGlass(np.full(n, np.nan), np.full(n, np.nan), n_beams=n, n_bad=n_nan), np.zeros(n, dtype=bool)
+        res = incidence_angles(a, rr, self.config.angle_method, self.config.angle_params)
+        out = BeamGlass(np.full(n, np.nan), res.incidence, n_beams=n, n_ranged=n_ranged, n_bad=n_nan)
         if scan.intensities is None:
+            out.n_angle = int(np.count_nonzero(np.isfinite(res.incidence)))
             out.no_intensities = True
             return out, np.zeros(n, dtype=bool)
-        inten = scan.intensities
-        finite_i = np.isfinite(inten)
-        out.n_bad += int(np.count_nonzero(~finite_i & ~np.isnan(r)))
-        use = has_angle & finite_i
-        out.n_classified = int(np.count_nonzero(use))
+        use, out.n_angle, n_bad, out.n_classified = classified_beams(res.incidence, scan.intensities, r)
+        out.n_bad += n_bad
         if out.n_classified:
             out.p_glass[use] = self.classifier_for(scan).predict_scan(scan, res, use, angles=a)
         return out, use

@@ -141,3 +141,16 @@ def test_split_merge_matches_the_reference_on_recorded_scans():
         np.testing.assert_array_equal(np.isnan(res.incidence), np.isnan(inc))
         ok = ~np.isnan(inc)
         np.testing.assert_allclose(res.incidence[ok], inc[ok], rtol=0, atol=1e-9)
+
+
+def test_split_merge_angles_are_numpys_arccos_of_the_clipped_cosines_to_the_bit():
+    """Each beam's incidence is np.arccos(np.clip(|u . n|, 0, 1)) of its beam direction u (np.cos, np.sin) and
+    its segment's normal n, as when the kernel returned the cosines and the caller clipped and scattered them."""
+    ref = np.load(Path(__file__).parent / "data" / "split_merge_reference.npz")
+    for a, r in zip(ref["beam_angles"], ref["ranges"]):
+        res = split_merge(a, r)
+        on = res.segment >= 0
+        nrm = res.normals[res.segment[on]]
+        cos = np.abs(np.cos(a[on]) * nrm[:, 0] + np.sin(a[on]) * nrm[:, 1])
+        np.testing.assert_array_equal(res.incidence[on], np.arccos(np.clip(cos, 0.0, 1.0)))
+        assert np.isnan(res.incidence[~on]).all() and on.any()

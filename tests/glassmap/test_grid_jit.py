@@ -107,3 +107,27 @@ def test_hit_margins_equal_numpy_to_the_bit():
         for edge, surface in ((0.2, 0.1), (0.2, 0.2), (0.05, 0.3)):
             np.testing.assert_array_equal(hit_margins(c, s, ranges, hit, edge, surface),
                                           numpy_hit_margins(c, s, ranges, hit, edge, surface))
+
+
+def test_the_mappers_beam_masks_equal_numpy():
+    """``ranged_beams`` and ``classified_beams`` (GlassMapper.classify) give the masks and counts of the numpy
+    expressions they replaced."""
+    from glassmap.grid_jit import classified_beams, ranged_beams
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 50, 1081):
+        r = rng.uniform(-0.5, 35.0, n)
+        for v, share in ((np.nan, 0.1), (np.inf, 0.05), (-np.inf, 0.02), (0.1, 0.02), (30.0, 0.02)):
+            r[rng.random(n) < share] = v
+        inc = np.where(rng.random(n) < 0.7, rng.uniform(0, 1.5, n), np.nan)
+        inten = rng.uniform(0, 5000, n)
+        inten[rng.random(n) < 0.1] = np.nan
+        inten[rng.random(n) < 0.05] = np.inf
+        ranged = np.isfinite(r) & (r >= 0.1) & (r <= 30.0)
+        rr, n_ranged, n_nan = ranged_beams(r, 0.1, 30.0)
+        np.testing.assert_array_equal(rr, np.where(ranged, r, np.nan))
+        assert (n_ranged, n_nan) == (np.count_nonzero(ranged), np.count_nonzero(np.isnan(r)))
+        use, n_angle, n_bad, n_use = classified_beams(inc, inten, r)
+        np.testing.assert_array_equal(use, np.isfinite(inc) & np.isfinite(inten))
+        assert (n_angle, n_bad, n_use) == (np.count_nonzero(np.isfinite(inc)),
+                                           np.count_nonzero(~np.isfinite(inten) & ~np.isnan(r)), np.count_nonzero(use))
