@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .classifier_jit import add_bias_relu, standardise
+from .classifier_jit import add_bias_relu, negative_logit_gaps, standardise, standardise_rows
+from .glass_features import scan_features
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_MODEL = "context"
@@ -198,7 +199,10 @@ class GlassClassifier:
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         """Temperature-scaled logits (n, 2) float32 for raw features ``x`` (n, k) of this model."""
-        h = standardise(np.ascontiguousarray(x, dtype=np.float32), self._mean, self._inv_std)
+        return self._logits(standardise(np.ascontiguousarray(x, dtype=np.float32), self._mean, self._inv_std))
+
+    def _logits(self, h: np.ndarray) -> np.ndarray:
+        """:meth:`logits` from the standardised features ``h`` (n, k) float32."""
         for wt, b in self._layers[:-1]:
             h = h @ wt
             add_bias_relu(h, b)
@@ -222,10 +226,8 @@ class GlassClassifier:
         if x.shape[0] == 0:
             return np.zeros(0)
         if not np.isfinite(x).all():
-            raise ValueError("classifier inputs must be finite (select beams with a range and an angle first)")
-        lg = self.logits(x).astype(np.float64)
-        # softmax over 2 classes: p(glass) = sigmoid(l1 - l0)
-        return 1.0 / (1.0 + np.exp(-(lg[:, 1] - lg[:, 0])))
+            raise ValueError(_NOT_FINITE)
+        return _glass_probability(self.logits(x))
 
     def predict_beams(self, x: np.ndarray) -> np.ndarray:
         """p(glass) for rows of the context model's features (the baseline reads their first columns)."""
@@ -236,8 +238,22 @@ class GlassClassifier:
         incidence result ``inc`` of its ranges (``angles``: ``scan.angles`` if the caller has them already).
         A model that reads echoes sees a single-echo scan as one whose beams all had one echo (the runtime
         falls back to the baseline model instead)."""
-        from .glass_features import scan_features
-
         a = scan.angles if angles is None else angles
         x = scan_features(self.meta.model, a, scan.ranges, scan.intensities, inc, scan.echoes, scan.echo_intensities)
-        return self.predict_features(np.compress(use, x, axis=0))  # (x[use], a few times cheaper)
+        # predict_features(x[use]) without the copy of the rows
+        h, finite = standardise_rows(x, use, self._mean, self._inv_std)
+        if h.shape[0] == 0:
+            return np.zeros(0)
+        if not finite:
+            raise ValueError(_NOT_FINITE)
+        return _glass_probability(self._logits(h))
+
+
+_NOT_FINITE = "classifier inputs must be finite (select beams with a range and an angle first)"
+
+
+def _glass_probability(logits: np.ndarray) -> np.ndarray:
+    """p(glass) (m,) float64 from the logits (m, 2) float32: the softmax over 2 classes, sigmoid(l1 - l0)."""
+    p = np.exp(negative_logit_gaps(logits))
+    p += 1.0
+    return np.divide(1.0, p, out=p)

@@ -217,3 +217,30 @@ def test_compiled_passes_give_the_numpy_logits_bit_for_bit(model):
     wide = np.asfortranarray(x.astype(np.float64))
     assert np.array_equal(c.logits(wide), numpy_logits(wide))
     assert c.logits(x[:0]).shape == (0, 2)
+
+
+def test_predict_scan_is_predict_features_of_the_rows_to_the_bit(clf, base):
+    """predict_scan standardises the rows ``use`` in place of copying them (classifier_jit.standardise_rows)
+    and takes the softmax from the logits' gap (negative_logit_gaps): the numbers of the numpy code it
+    replaced, ``1 / (1 + exp(-(l1 - l0)))`` of ``logits(x[use])``; non-finite inputs are still refused."""
+    from glassmap.glass_features import scan_features
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+    from glassmap.train import sample_poses
+
+    world = load_world("office")
+    rng = np.random.default_rng(3)
+    for pose in sample_poses(world, 6, rng):
+        scan = simulate_scan(world, pose, rng).to_scan()
+        inc = incidence_angles(scan.angles, scan.ranges)
+        use = np.isfinite(inc.incidence) & np.isfinite(scan.ranges)
+        for c in (clf, base):
+            x = scan_features(c.meta.model, scan.angles, scan.ranges, scan.intensities, inc, scan.echoes,
+                              scan.echo_intensities)[use]
+            lg = c.logits(x).astype(np.float64)
+            np.testing.assert_array_equal(c.predict_scan(scan, inc, use), 1.0 / (1.0 + np.exp(-(lg[:, 1] - lg[:, 0]))))
+            np.testing.assert_array_equal(c.predict_features(x), c.predict_scan(scan, inc, use))
+    assert clf.predict_scan(scan, inc, np.zeros_like(use)).shape == (0,)
+    scan.intensities[np.flatnonzero(use)[0] + 1] = np.inf  # a neighbour's intensity: not finite features
+    with pytest.raises(ValueError, match="finite"):
+        clf.predict_scan(scan, inc, use)
