@@ -17,9 +17,9 @@ _jit = njit(cache=True, nogil=True, error_model="numpy")  # x / 0 is inf or NaN,
 
 
 @_jit
-def segment_order(seg: np.ndarray, n_seg: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def segment_order(seg: np.ndarray, n_seg: int) -> tuple[np.ndarray, np.ndarray]:
     """The beams on a segment grouped by segment id (increasing), in beam order within a group: (order
-    (m,) beam indices, starts (g,) first position of each group in ``order``, group (m,) of each)."""
+    (m,) beam indices, starts (g,) first position of each group in ``order``)."""
     count = np.zeros(n_seg, np.int64)
     for b in range(seg.shape[0]):
         if seg[b] >= 0:
@@ -33,22 +33,45 @@ def segment_order(seg: np.ndarray, n_seg: int) -> tuple[np.ndarray, np.ndarray, 
         if count[s]:
             g += 1
     order = np.empty(total, np.int64)
-    group = np.empty(total, np.int64)
     starts = np.empty(g, np.int64)
-    gid = np.full(n_seg, -1, np.int64)
     k = 0
     for s in range(n_seg):
         if count[s]:
             starts[k] = pos[s]
-            gid[s] = k
             k += 1
     for b in range(seg.shape[0]):
         s = seg[b]
         if s >= 0:
             order[pos[s]] = b
-            group[pos[s]] = gid[s]
             pos[s] += 1
-    return order, starts, group
+    return order, starts
+
+
+@_jit
+def segment_groups(seg: np.ndarray, n_seg: int, r: np.ndarray, cos_a: np.ndarray, sin_a: np.ndarray,
+                   li: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`segment_order` of the segment ids ``seg`` (n,), then ``li`` (n,) in that order (m,) and each
+    group's extent (g,) m: the diagonal of the bounding box of its end points r * (cos_a, sin_a) (r: ranges
+    (n,) m, cos_a, sin_a: the beam directions (n,)). Returns (order, starts, li in order, extents)."""
+    order, starts = segment_order(seg, n_seg)
+    g = starts.shape[0]
+    m = order.shape[0]
+    li_order = np.empty(m)
+    ext = np.empty(g)
+    for s in range(g):
+        i0 = starts[s]
+        i1 = starts[s + 1] if s + 1 < g else m
+        b = order[i0]
+        xmin = xmax = r[b] * cos_a[b]
+        ymin = ymax = r[b] * sin_a[b]
+        for i in range(i0, i1):
+            b = order[i]
+            px, py = r[b] * cos_a[b], r[b] * sin_a[b]
+            xmin, xmax = min(xmin, px), max(xmax, px)
+            ymin, ymax = min(ymin, py), max(ymax, py)
+            li_order[i] = li[b]
+        ext[s] = math.hypot(xmax - xmin, ymax - ymin)
+    return order, starts, li_order, ext
 
 
 @_jit
@@ -81,15 +104,14 @@ def _window_max(table: np.ndarray, lo: int, hi: int) -> float:
 
 @_jit
 def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.ndarray, e: np.ndarray,
-                    lei: np.ndarray, order: np.ndarray, starts: np.ndarray, lsum: np.ndarray, px: np.ndarray,
-                    py: np.ndarray) -> np.ndarray:
-    """Fill every column of the context features ``x`` (n, 19) float32 but the segment length (15).
+                    lei: np.ndarray, order: np.ndarray, starts: np.ndarray, lsum: np.ndarray,
+                    log_ext: np.ndarray) -> None:
+    """Fill every column of the context features ``x`` (n, 19) float32.
 
     li: (n,) log1p of the intensities (0 where none); r: (n,) first-echo ranges (m); e, lei: (n, k) further
     echoes (m) and log1p of their intensities (k = 0: a single-echo scan; lei (n, 0): no intensities);
-    order, starts: from :func:`segment_order`; lsum: (g,) sums of li over each group; px, py: (m,) end
-    points (m) of the beams in ``order``. Returns the extent (g,) m of each group's end points (the
-    diagonal of their bounding box), whose log1p is column 15."""
+    order, starts: from :func:`segment_order`; lsum: (g,) sums of li over each group; log_ext: (g,) log1p
+    of each group's extent (:func:`segment_groups`), column 15."""
     n = r.shape[0]
     ne = e.shape[1]
     two = np.zeros(n, np.bool_)
@@ -150,7 +172,6 @@ def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.
     # place on the line segment
     g = starts.shape[0]
     m = order.shape[0]
-    ext = np.empty(g)
     for s in range(g):
         i0 = starts[s]
         i1 = starts[s + 1] if s + 1 < g else m
@@ -158,21 +179,17 @@ def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.
         lo_i, hi_i = float(order[i0]), float(order[i1 - 1])
         mid = 0.5 * (lo_i + hi_i)
         half = max(0.5 * (hi_i - lo_i), 0.5)
-        xmin, xmax, ymin, ymax = px[i0], px[i0], py[i0], py[i0]
         lmax = li[order[i0]]
         t = 0.0
         for i in range(i0, i1):
-            xmin, xmax = min(xmin, px[i]), max(xmax, px[i])
-            ymin, ymax = min(ymin, py[i]), max(ymax, py[i])
             lmax = max(lmax, li[order[i]])
             if two[order[i]]:
                 t += 1.0
-        ext[s] = math.hypot(xmax - xmin, ymax - ymin)
         mean = lsum[s] / cnt
         for i in range(i0, i1):
             b = order[i]
             x[b, 14] = abs(float(b) - mid) / half
+            x[b, 15] = log_ext[s]
             x[b, 16] = mean - li[b]
             x[b, 17] = lmax - li[b]
             x[b, 18] = t / cnt
-    return ext

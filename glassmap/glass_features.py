@@ -20,7 +20,7 @@ import numpy as np
 
 from .angles import IncidenceResult
 from .beam_trig import beam_trig
-from .features_jit import context_columns, segment_order
+from .features_jit import context_columns, segment_groups
 
 BASELINE_FEATURES = ("log1p(intensity)", "distance_m", "incidence_rad")
 CONTEXT_FEATURES = BASELINE_FEATURES + (
@@ -66,11 +66,10 @@ def scan_features(model: str, beam_angles: np.ndarray, ranges: np.ndarray, inten
             lei = np.log1p(np.where(ei > 0.0, ei, 0.0))
     # the per-beam and per-segment loops are compiled; what they need of log1p, cos, sin and the
     # (pairwise) sums per segment is computed here
-    order, starts, group = segment_order(np.asarray(inc.segment, dtype=np.int64), inc.n_segments)
     trig = beam_trig(beam_angles)  # np.cos / np.sin of the angles, kept from the last scan with the same angles
-    ro = r[order]
-    lsum = np.add.reduceat(li[order], starts) if starts.size else np.zeros(0)
-    ext = context_columns(x, li, r, np.asarray(inc.incidence, dtype=np.float64), e, lei, order, starts, lsum,
-                          ro * trig.cos[order], ro * trig.sin[order])
-    x[order, 15] = np.log1p(ext)[group]
+    order, starts, li_order, ext = segment_groups(np.asarray(inc.segment, dtype=np.int64), inc.n_segments, r,
+                                                  trig.cos, trig.sin, li)
+    lsum = np.add.reduceat(li_order, starts) if starts.size else np.zeros(0)
+    context_columns(x, li, r, np.asarray(inc.incidence, dtype=np.float64), e, lei, order, starts, lsum,
+                    np.log1p(ext))
     return x

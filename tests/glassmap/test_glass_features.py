@@ -86,3 +86,27 @@ def test_invalid_readings_give_finite_features():
     assert np.isfinite(x).all()
     with pytest.raises(ValueError, match="unknown classifier model"):
         scan_features("nonsense", a, r, i, inc)
+
+
+def test_segment_length_is_numpys_log1p_of_the_end_points_extent_to_the_bit():
+    """Column 15 (seg_length_m) is what the numpy code before its kernel (glassmap.features_jit.segment_groups)
+    gave: log1p of the hypot of each segment's end points' bounding box (r cos, r sin of the beam angles),
+    cast to float32; beams on no segment get 0."""
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+    from glassmap.train import sample_poses
+
+    world = load_world("office")
+    rng = np.random.default_rng(4)
+    for pose in sample_poses(world, 6, rng):
+        scan = simulate_scan(world, pose, rng).to_scan()
+        a, r = scan.angles, scan.ranges
+        inc = incidence_angles(a, r)
+        x = scan_features("context", a, r, scan.intensities, inc, scan.echoes, scan.echo_intensities)
+        ext = np.zeros(inc.n_segments)
+        for s in range(inc.n_segments):
+            on = inc.segment == s
+            px, py = r[on] * np.cos(a)[on], r[on] * np.sin(a)[on]
+            ext[s] = np.hypot(px.max() - px.min(), py.max() - py.min())
+        want = np.where(inc.segment >= 0, np.log1p(ext)[inc.segment], 0.0).astype(np.float32)
+        np.testing.assert_array_equal(x[:, 15], want)
