@@ -85,8 +85,9 @@ class MapGrid:
         c = np.asarray(cells)
         return (c[..., 0] >= 0) & (c[..., 0] < self.shape[1]) & (c[..., 1] >= 0) & (c[..., 1] < self.shape[0])
 
-    def ensure_contains(self, xy_min: np.ndarray, xy_max: np.ndarray) -> bool:
-        """Grow every layer so the map-frame box [xy_min, xy_max] lies inside. Returns True if it grew."""
+    def ensure_contains(self, xy_min: np.ndarray | tuple[float, float],
+                        xy_max: np.ndarray | tuple[float, float]) -> bool:
+        """Grow every layer so the map-frame box [xy_min, xy_max] (m, (x, y)) lies inside. Returns True if it grew."""
         x0, y0, x1, y1 = float(xy_min[0]), float(xy_min[1]), float(xy_max[0]), float(xy_max[1])
         if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(x1) and math.isfinite(y1)):
             raise ValueError("ensure_contains needs finite coordinates")

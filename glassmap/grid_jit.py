@@ -68,6 +68,16 @@ def _extend(box: np.ndarray, x: float, y: float) -> None:
 
 
 @_jit
+def bounds(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The box (4,) (x min, y min, x max, y max) of the n >= 1 points (x, y) (NaN if a coordinate is NaN, as
+    np.min / np.max)."""
+    box = np.array([x[0], y[0], x[0], y[0]])
+    for j in range(1, x.shape[0]):
+        _extend(box, x[j], y[j])
+    return box
+
+
+@_jit
 def hit_margins(c: np.ndarray, s: np.ndarray, ranges: np.ndarray, hit: np.ndarray, edge: float, surface: float,
                 k: int, chord: float) -> np.ndarray:
     """Per beam, how far short of its end point it stops clearing (m): ``surface`` for a beam whose

@@ -19,7 +19,7 @@ import numpy as np
 from .angles import AngleMethod, AngleParams, incidence_angles
 from .glass import GlassMap, GlassParams
 from .grid import MapGrid, OccupancyGrid
-from .grid_jit import classified_beams, raise_end_cells, ranged_beams
+from .grid_jit import bounds, classified_beams, raise_end_cells, ranged_beams
 from .registration import Aggregation, DecayRef, Method, nearest_occupied_cells, window_evidence
 from .types import Scan
 
@@ -350,10 +350,10 @@ def end_points(laser_pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray,
     return laser_pose[0] + rr * np.cos(ang), laser_pose[1] + rr * np.sin(ang)
 
 
-def _box(x: np.ndarray, y: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper corners (m) of the box around the points (x, y) grown by ``margin`` (m), by 1-D
-    reductions (an axis-0 reduction of an (n, 2) array costs ~15x more)."""
-    return (np.array([x.min() - margin, y.min() - margin]), np.array([x.max() + margin, y.max() + margin]))
+def _box(x: np.ndarray, y: np.ndarray, margin: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Lower and upper corners (m) of the box around the n >= 1 points (x, y) grown by ``margin`` (m)."""
+    x0, y0, x1, y1 = bounds(x, y).tolist()
+    return (x0 - margin, y0 - margin), (x1 + margin, y1 + margin)
 
 
 @dataclass

@@ -131,3 +131,14 @@ def test_the_mappers_beam_masks_equal_numpy():
         np.testing.assert_array_equal(use, np.isfinite(inc) & np.isfinite(inten))
         assert (n_angle, n_bad, n_use) == (np.count_nonzero(np.isfinite(inc)),
                                            np.count_nonzero(~np.isfinite(inten) & ~np.isnan(r)), np.count_nonzero(use))
+
+
+def test_bounds_are_numpys_min_and_max():
+    from glassmap.grid_jit import bounds
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 7, 300):
+        x, y = rng.normal(size=n) * 10, rng.normal(size=n) * 10
+        np.testing.assert_array_equal(bounds(x, y), [x.min(), y.min(), x.max(), y.max()])
+        x[n // 2] = np.nan
+        assert np.isnan(bounds(x, y)[[0, 2]]).all() and not np.isnan(bounds(x, y)[[1, 3]]).any()
