@@ -143,6 +143,9 @@ def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.
         v = li[b]
         w[b] = v if math.isfinite(r[b]) and v == v else -np.inf
     table = _max_table(w, 4)  # windows of up to 2 * 2^4 beams
+    n_two = np.zeros(n + 1, np.int64)  # two-echo beams before each beam
+    for b in range(n):
+        n_two[b + 1] = n_two[b] + two[b]
     for b in range(n):
         lb = li[b]
         for j, k in enumerate((-2, -1, 1, 2)):
@@ -159,11 +162,8 @@ def context_columns(x: np.ndarray, li: np.ndarray, r: np.ndarray, incidence: np.
         lo = lo if math.isfinite(lo) else np.nan
         slope = abs(hi - lo) * 0.5
         x[b, 12] = slope if slope <= 1.0 else 1.0
-        t = 0.0
-        for q in range(max(b - 3, 0), min(b + 4, n)):
-            if two[q]:
-                t += 1.0
-        x[b, 13] = t / float(min(b + 4, n) - max(b - 3, 0))
+        lo3, hi3 = max(b - 3, 0), min(b + 4, n)
+        x[b, 13] = float(n_two[hi3] - n_two[lo3]) / float(hi3 - lo3)
         x[b, 14] = 1.0
         x[b, 15] = 0.0
         x[b, 16] = 0.0

@@ -110,3 +110,29 @@ def test_segment_length_is_numpys_log1p_of_the_end_points_extent_to_the_bit():
             ext[s] = np.hypot(px.max() - px.min(), py.max() - py.min())
         want = np.where(inc.segment >= 0, np.log1p(ext)[inc.segment], 0.0).astype(np.float32)
         np.testing.assert_array_equal(x[:, 15], want)
+
+
+def test_two_echo_share_is_the_windows_float_count_to_the_bit():
+    """Column 13 (two_echo_share3) is the share of two-echo beams within +-3 beams (clipped at the scan's
+    ends), as the loop that added 1.0 per two-echo beam and divided by the window's length gave."""
+    from glassmap.sim.laser import simulate_scan
+    from glassmap.sim.world import load_world
+    from glassmap.train import sample_poses
+
+    world = load_world("office")
+    rng = np.random.default_rng(6)
+    for pose in sample_poses(world, 4, rng):
+        scan = simulate_scan(world, pose, rng).to_scan()
+        inc = incidence_angles(scan.angles, scan.ranges)
+        x = scan_features("context", scan.angles, scan.ranges, scan.intensities, inc, scan.echoes,
+                          scan.echo_intensities)
+        two = x[:, 3] == 2.0
+        n = len(two)
+        want = np.empty(n, np.float32)
+        for b in range(n):
+            t = 0.0
+            for q in range(max(b - 3, 0), min(b + 4, n)):
+                t += 1.0 if two[q] else 0.0
+            want[b] = t / float(min(b + 4, n) - max(b - 3, 0))
+        assert two.any()
+        np.testing.assert_array_equal(x[:, 13], want)
