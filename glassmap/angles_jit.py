@@ -112,6 +112,21 @@ def segment_keep(x: np.ndarray, y: np.ndarray, seg: np.ndarray, mom: np.ndarray,
 
 
 @_jit
+def _distance_for(dx: float, dy: float, thr: float) -> float:
+    """``math.hypot(dx, dy)``, or a stand-in that compares with ``thr`` the same way (``>`` and ``<=``): inf or 0
+    when the squared distance is off ``thr^2`` by a relative 1e-9, far beyond the rounding of the squares
+    and of hypot (within an ulp), so that most comparisons need no hypot."""
+    if thr >= 1e-145:  # thr^2 a normal number (or inf), and thr not NaN
+        q = dx * dx + dy * dy
+        t2 = thr * thr
+        if q > t2 * (1.0 + 1e-9):
+            return np.inf
+        if q < t2 * (1.0 - 1e-9):
+            return 0.0
+    return math.hypot(dx, dy)
+
+
+@_jit
 def breaks(idx: np.ndarray, r: np.ndarray, x: np.ndarray, y: np.ndarray, dphi: float, sin_lambda: float,
            sigma3: float, max_gap: int) -> np.ndarray:
     """bool (m,): point i starts a new run (adaptive breakpoint detector): it is more than ``max_gap``
@@ -121,9 +136,8 @@ def breaks(idx: np.ndarray, r: np.ndarray, x: np.ndarray, y: np.ndarray, dphi: f
     brk = np.ones(m, np.bool_)
     for i in range(1, m):
         gap = idx[i] - idx[i - 1]
-        d = math.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
         thr = min(r[i - 1], r[i]) * (float(gap) * dphi) / sin_lambda + sigma3
-        brk[i] = gap > max_gap + 1 or d > thr
+        brk[i] = gap > max_gap + 1 or _distance_for(x[i] - x[i - 1], y[i] - y[i - 1], thr) > thr
     return brk
 
 
@@ -237,7 +251,7 @@ def chain_points(x: np.ndarray, y: np.ndarray, r: np.ndarray, beam: np.ndarray, 
             thr = min(r[p], r[q]) * float(beam[p] - beam[q])
             thr *= k
             thr += sigma3
-            if math.hypot(x[p] - x[q], y[p] - y[q]) <= thr:
+            if _distance_for(x[p] - x[q], y[p] - y[q], thr) <= thr:
                 root[i] = root[j]
                 break
     size = np.zeros(m, np.int64)

@@ -154,3 +154,22 @@ def test_split_merge_angles_are_numpys_arccos_of_the_clipped_cosines_to_the_bit(
         cos = np.abs(np.cos(a[on]) * nrm[:, 0] + np.sin(a[on]) * nrm[:, 1])
         np.testing.assert_array_equal(res.incidence[on], np.arccos(np.clip(cos, 0.0, 1.0)))
         assert np.isnan(res.incidence[~on]).all() and on.any()
+
+
+def test_distance_stand_in_compares_with_the_threshold_as_hypot():
+    """angles_jit._distance_for (breakpoints and the second pass's links) gives ``>`` and ``<=`` against the
+    threshold the results of the C library's hypot (numba's math.hypot, np.hypot; not CPython's math.hypot),
+    also at and around the threshold and for NaN, inf, 0 and tiny values."""
+    from glassmap.angles_jit import _distance_for
+
+    rng = np.random.default_rng(9)
+    dx, dy = rng.normal(size=20000) * 0.1, rng.normal(size=20000) * 0.1
+    h = np.hypot(dx, dy)
+    thr = np.concatenate([h[:5000], np.nextafter(h[5000:10000], np.inf), np.nextafter(h[10000:15000], 0.0),
+                          rng.uniform(0.0, 0.3, 5000)])
+    cases = list(zip(dx, dy, thr)) + [(a, b, t) for a in (0.0, -0.0, 1e-160, 3.0, np.nan, np.inf)
+                                      for b in (0.0, 2e-200, -4.0, np.nan)
+                                      for t in (0.0, -1.0, 1e-150, 1e-140, 5.0, 1e200, np.inf, np.nan)]
+    for a, b, t in cases:
+        d, ref = _distance_for(a, b, t), np.hypot(a, b)
+        assert (d > t) == (ref > t) and (d <= t) == (ref <= t), (a, b, t)
