@@ -17,6 +17,7 @@ loop closures, the pose graph's marginal (``GraphBackEnd``, whose sequential edg
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -64,11 +65,18 @@ class ChainConfig:
     revisit_gap: float = 0.01
     revisit_share: float = 0.5
 
+    @cached_property
+    def floor(self) -> np.ndarray:
+        """diag(min_sigma^2) (3, 3): the covariance added to every step (read only)."""
+        out = np.diag(np.square(self.min_sigma))
+        out.flags.writeable = False
+        return out
+
     def step_covariance(self, prev: KeyScan, key: KeyScan) -> np.ndarray:
         """Covariance (3, 3) of the step from key scan ``prev`` to ``key`` (in ``prev``'s frame), before
         ``chain_scale``."""
         rel = relative(prev.pose, key.pose)
-        floor = np.diag(np.square(self.min_sigma))
+        floor = self.floor
         cov = self.motion.covariance(rel, max(key.stamp - prev.stamp, 0.0)) + floor
         if key.fused_dims and prev.fused_dims:  # both placed by matches: fuse with their relative pose
             m = self.match_scale * relative_covariance(prev.pose, key.pose, prev.cov, key.cov) + floor
@@ -99,7 +107,7 @@ class ChainConfig:
         """Covariance (3, 3, map frame) of ``compose(node, rel)``: a key scan's pose ``node`` of covariance
         ``cov`` carried along the front end's motion ``rel`` since it (over ``dt`` s), plus that motion's own
         odometry noise and ``min_sigma`` (an unscaled step to a pose that is not a key scan)."""
-        q = self.motion.covariance(rel, max(dt, 0.0)) + np.diag(np.square(self.min_sigma))
+        q = self.motion.covariance(rel, max(dt, 0.0)) + self.floor
         return compose_covariance(node, rel, cov, q)
 
 
@@ -220,7 +228,11 @@ class DriftChain:
         if self.key is None:
             return self.cov.copy()
         cov = self.config.carried(self.key.pose, self.cov, relative(self.key.pose, pose), stamp - self.key.stamp)
-        if self.config.scale_sigma > 0.0:
-            d = self.config.scale_sigma * (np.asarray(pose[:2], dtype=np.float64) - self.start)
-            cov[:2, :2] += np.outer(d, d)
+        k = self.config.scale_sigma
+        if k > 0.0:  # (the outer product of d, element by element)
+            dx, dy = k * (float(pose[0]) - float(self.start[0])), k * (float(pose[1]) - float(self.start[1]))
+            cov[0, 0] += dx * dx
+            cov[0, 1] += dx * dy
+            cov[1, 0] += dy * dx
+            cov[1, 1] += dy * dy
         return cov

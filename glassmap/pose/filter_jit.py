@@ -125,13 +125,31 @@ def predict(pose: np.ndarray, delta: np.ndarray, q: np.ndarray, cov: np.ndarray,
 
 
 @_jit
-def motion_xy(c: float, s: float, var_along: float, var_lat: float) -> np.ndarray:
-    """rot @ diag(var_along, var_lat) @ rot.T with rot = [[c, -s], [s, c]] (MotionNoise.covariance)."""
-    rot = np.empty((2, 2), np.float64)
-    rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, -s, s, c
-    d = np.zeros((2, 2), np.float64)
-    d[0, 0], d[1, 1] = var_along, var_lat
-    return sandwich(rot, d)
+def compose_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """motion.compose_covariance: ja cov_a ja^T + jb cov_b jb^T symmetrized, with (ja, jb) =
+    compose_jacobians(a, b)."""
+    out = carried(a, b, cov_a) + rotated(a, cov_b)
+    return 0.5 * (out + out.T)
+
+
+@_jit
+def motion_covariance(dx: float, dy: float, d: float, var_along: float, var_lat: float, var_yaw: float
+                      ) -> np.ndarray:
+    """MotionNoise.covariance's 3x3 from its variances for a motion (dx, dy) of length d (m): the xy block
+    rot @ diag(var_along, var_lat) @ rot.T with rot = [[c, -s], [s, c]], (c, s) = (dx, dy) / d, where
+    d > 1e-9 (else diag(var_along, var_lat)), and var_yaw."""
+    cov = np.zeros((3, 3), np.float64)
+    if d > 1e-9:
+        rot = np.empty((2, 2), np.float64)
+        c, s = dx / d, dy / d
+        rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, -s, s, c
+        diag = np.zeros((2, 2), np.float64)
+        diag[0, 0], diag[1, 1] = var_along, var_lat
+        cov[:2, :2] = sandwich(rot, diag)
+    else:
+        cov[0, 0], cov[1, 1] = var_along, var_lat
+    cov[2, 2] = var_yaw
+    return cov
 
 
 def warm_up() -> None:
@@ -141,4 +159,5 @@ def warm_up() -> None:
     predict(z3, z3, e, e, e, e)
     carried(z3, z3, e)
     rotated(z3, e)
-    motion_xy(1.0, 0.0, 0.0, 0.0)
+    compose_covariance(z3, z3, e, e)
+    motion_covariance(1.0, 0.0, 1.0, 0.0, 0.0, 0.0)

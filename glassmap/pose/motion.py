@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from glassmap.pose.filter_jit import motion_xy
+from glassmap.pose.filter_jit import compose_covariance as _compose_covariance, motion_covariance
 from glassmap.types import Odometry
 
 
@@ -60,10 +60,11 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 def compose_covariance(a: np.ndarray, b: np.ndarray, cov_a: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
     """Covariance (3, 3, symmetric) of ``compose(a, b)`` for a pose a (3,) of covariance cov_a (a's parent
-    frame) and a relative pose b (3,) of independent covariance cov_b (a's frame): first order."""
-    ja, jb = compose_jacobians(a, b)
-    out = ja @ np.asarray(cov_a, dtype=np.float64) @ ja.T + jb @ np.asarray(cov_b, dtype=np.float64) @ jb.T
-    return 0.5 * (out + out.T)
+    frame) and a relative pose b (3,) of independent covariance cov_b (a's frame): first order, with the
+    Jacobians of :func:`compose_jacobians` (one compiled step, :func:`glassmap.pose.filter_jit.compose_covariance`)."""
+    f64 = np.float64
+    return _compose_covariance(np.asarray(a, dtype=f64), np.asarray(b, dtype=f64), np.asarray(cov_a, dtype=f64),
+                               np.asarray(cov_b, dtype=f64))
 
 
 @dataclass(frozen=True)
@@ -129,14 +130,8 @@ class MotionNoise:
         var_lat = (self.lateral_per_m * d) ** 2 + self.trans_rw * d + self.xy_per_s ** 2 * dt
         var_yaw = ((self.rot_per_rad * r) ** 2 + (self.rot_per_m * d) ** 2 + self.rot_rw_m * d
                    + self.rot_rw_rad * r + self.yaw_per_s ** 2 * dt)
-        if d > 1e-9:  # along / lateral axes follow the direction of travel: rot diag(along, lat) rot^T
-            xy = motion_xy(float(delta[0]) / d, float(delta[1]) / d, var_along, var_lat)
-        else:
-            xy = np.diag([var_along, var_lat])
-        cov = np.zeros((3, 3))
-        cov[:2, :2] = xy
-        cov[2, 2] = var_yaw
-        return cov
+        # along / lateral axes follow the direction of travel: rot diag(along, lat) rot^T
+        return motion_covariance(float(delta[0]), float(delta[1]), d, var_along, var_lat, var_yaw)
 
 
 class OdometryBuffer:

@@ -4,7 +4,8 @@ everywhere."""
 
 import numpy as np
 
-from glassmap.pose.filter_jit import carried, motion_xy, predict, rotated, sandwich
+from glassmap.pose.filter_jit import carried, compose_covariance, motion_covariance, predict, rotated, sandwich
+from glassmap.pose.motion import compose_jacobians
 from glassmap.types import wrap_angle
 
 
@@ -79,12 +80,27 @@ def test_predict_equals_the_numpy_filter_step():
             assert _same(x, y)
 
 
-def test_motion_xy_equals_the_numpy_rotation():
+def test_motion_covariance_equals_the_numpy_rotation():
     rng = np.random.default_rng(12)
-    for _ in range(5000):
-        d = rng.normal(size=2) * 10 ** rng.uniform(-6, 0)
+    for i in range(5000):
+        d = rng.normal(size=2) * 10 ** rng.uniform(-6, 0) * (i % 10 > 0)  # every tenth a motion of zero length
         n = float(np.hypot(d[0], d[1]))
-        c, s = d[0] / n, d[1] / n
-        va, vl = rng.uniform(0, 1e-3, 2)
-        rot = np.array([[c, -s], [s, c]])
-        assert _same(motion_xy(c, s, va, vl), rot @ np.diag([va, vl]) @ rot.T)
+        va, vl, vy = rng.uniform(0, 1e-3, 3)
+        ref = np.zeros((3, 3))  # MotionNoise.covariance's numpy code
+        if n > 1e-9:
+            c, s = float(d[0]) / n, float(d[1]) / n
+            rot = np.array([[c, -s], [s, c]])
+            ref[:2, :2] = rot @ np.diag([va, vl]) @ rot.T
+        else:
+            ref[:2, :2] = np.diag([va, vl])
+        ref[2, 2] = vy
+        assert _same(motion_covariance(float(d[0]), float(d[1]), n, va, vl, vy), ref)
+
+
+def test_compose_covariance_equals_the_numpy_jacobians():
+    rng = np.random.default_rng(14)
+    for _ in range(5000):
+        a, b, cov_a, cov_b = _pose(rng), _pose(rng, 0.5), _cov(rng), _cov(rng)
+        ja, jb = compose_jacobians(a, b)  # motion.compose_covariance's numpy code
+        out = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
+        assert _same(compose_covariance(a, b, cov_a, cov_b), 0.5 * (out + out.T))
