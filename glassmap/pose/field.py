@@ -19,7 +19,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid
 from glassmap.pose.field_jit import (cells_of_walls, changed_cells, forward_maximum, forward_maximum_at, near_cells,
-                                     neighbour_sums, renew_nearest, unique_cells)
+                                     neighbour_sums, renew_nearest, unique_cells, wall_vectors)
 
 
 FAR = 10.0  # m: the vector stored where no wall is within the cut-off (the likelihood there is the floor)
@@ -376,21 +376,12 @@ class LikelihoodField:
     def wall_vectors(self, xy: np.ndarray) -> np.ndarray:
         """Vectors (n, 2) (m) from map-frame points xy (n, 2) to their nearest wall point, interpolated
         bilinearly as in :meth:`log_likelihood`; NaN off the field or without ``FieldParams.vectors``."""
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        out = np.full(xy.shape, np.nan)
+        xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
         if self.vx is None:
-            return out
+            return np.full(xy.shape, np.nan)
         h, w = self.shape
-        g = (xy - self.origin) / self.resolution - 0.5
-        x0, y0 = np.floor(g[:, 0]), np.floor(g[:, 1])
-        ax, ay = g[:, 0] - x0, g[:, 1] - y0
-        inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
-        base = np.where(inside, y0 * w + x0, 0).astype(np.int64)
-        corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (w, (1 - ax) * ay), (w + 1, ax * ay))
-        vx = sum(c * self.vx[base + d] for d, c in corners)
-        vy = sum(c * self.vy[base + d] for d, c in corners)
-        out[inside] = np.stack([vx, vy], axis=1)[inside]
-        return out
+        return wall_vectors(self.vx, self.vy, xy, float(self.origin[0]), float(self.origin[1]),
+                            float(self.resolution), w, h)
 
     def needs_rebuild(self, occupancy: OccupancyGrid, xy: np.ndarray, margin: float) -> bool:
         """True when the field was never built, the grid grew or ``xy`` (m) came within ``margin`` (m) of

@@ -266,6 +266,31 @@ def forward_maximum_at(a: np.ndarray, out: np.ndarray, cy: np.ndarray, cx: np.nd
                 mark[y, x] = False
 
 
+@_jit
+def wall_vectors(vx: np.ndarray, vy: np.ndarray, xy: np.ndarray, ox: float, oy: float, res: float, w: int,
+                 h: int) -> np.ndarray:
+    """Per map-frame point of ``xy`` (n, 2) (m): the vector (m) of the flat (h, w) float32 arrays ``vx``, ``vy``
+    (corner (ox, oy) m, cells ``res`` m) interpolated bilinearly between the four cell centres around it,
+    in float64 (corners in the order (0, 0), (1, 0), (0, 1), (1, 1), summed from 0); NaN where those are
+    not all inside."""
+    n = xy.shape[0]
+    out = np.full((n, 2), np.nan)
+    for i in range(n):
+        gx = (xy[i, 0] - ox) / res - 0.5  # cell centres at integer coordinates
+        gy = (xy[i, 1] - oy) / res - 0.5
+        x0, y0 = np.floor(gx), np.floor(gy)
+        if not (x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1):
+            continue
+        ax, ay = gx - x0, gy - y0
+        c00, c10, c01, c11 = (1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay
+        b = np.int64(y0 * w + x0)
+        out[i, 0] = 0.0 + c00 * np.float64(vx[b]) + c10 * np.float64(vx[b + 1]) + c01 * np.float64(vx[b + w]) \
+            + c11 * np.float64(vx[b + w + 1])
+        out[i, 1] = 0.0 + c00 * np.float64(vy[b]) + c10 * np.float64(vy[b + 1]) + c01 * np.float64(vy[b + w]) \
+            + c11 * np.float64(vy[b + w + 1])
+    return out
+
+
 def warm_up() -> None:
     """Load (or, the first time on a machine, compile) the kernels now, with the argument types the field
     passes, rather than at the first rebuild."""
@@ -281,3 +306,5 @@ def warm_up() -> None:
     renew_nearest(flag, nearest, one, one, 1, flag.copy())
     cells_of_walls(nearest, one, one, 2, 1, one, flag.copy(), flag.copy())
     forward_maximum_at(layer, layer.copy(), one, one, 1, flag.copy())
+    flat = np.zeros(4, np.float32)
+    wall_vectors(flat, flat, np.zeros((1, 2)), 0.0, 0.0, 1.0, 2, 2)

@@ -1,6 +1,6 @@
 """The likelihood field's compiled passes equal the numpy / scipy code they replaced, bit for bit: the coarse
 maximum, the cells near a wall and their nearest occupied cells (the exact distance transform's), the distinct
-nearest cells, the neighbourhood sums of the end-point layers."""
+nearest cells, the neighbourhood sums of the end-point layers, the bilinear wall vectors."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells
+from glassmap.pose.field_jit import forward_maximum, near_cells, neighbour_sums, unique_cells, wall_vectors
 
 
 @pytest.mark.parametrize("shape, f", [((60, 45), 4), ((7, 5), 4), ((3, 2), 5), ((1, 1), 4), ((20, 30), 1),
@@ -74,3 +74,35 @@ def test_neighbour_sums_equal_the_numpy_gather(r):
     ay = np.where(inside, sy[yy, xx], 0) + c * (dy * res)[None, :]
     for g, want in zip(neighbour_sums(sx, sy, cnt, cy, cx, r, res), (c, ax, ay)):
         assert g.tobytes() == want.tobytes()
+
+
+def _numpy_wall_vectors(vx, vy, xy, origin, res, w, h):
+    """LikelihoodField.wall_vectors' numpy code before the kernel."""
+    out = np.full(xy.shape, np.nan)
+    g = (xy - origin) / res - 0.5
+    x0, y0 = np.floor(g[:, 0]), np.floor(g[:, 1])
+    ax, ay = g[:, 0] - x0, g[:, 1] - y0
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+    base = np.where(inside, y0 * w + x0, 0).astype(np.int64)
+    corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (w, (1 - ax) * ay), (w + 1, ax * ay))
+    ivx = sum(c * vx[base + d] for d, c in corners)
+    ivy = sum(c * vy[base + d] for d, c in corners)
+    out[inside] = np.stack([ivx, ivy], axis=1)[inside]
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_wall_vectors_equal_the_numpy_interpolation(seed):
+    rng = np.random.default_rng(seed)
+    h, w, res = int(rng.integers(2, 40)), int(rng.integers(2, 40)), float(rng.choice([0.05, 0.1, 0.025]))
+    vx = rng.normal(0, 0.05, h * w).astype(np.float32)
+    vy = rng.normal(0, 0.05, h * w).astype(np.float32)
+    vx[rng.random(h * w) < 0.3] = np.float32(10.0)  # far
+    vy[rng.random(h * w) < 0.3] = np.float32(-0.0)
+    origin = rng.normal(0, 3, 2)
+    xy = origin + rng.uniform(-0.2, 1.2, (500, 2)) * np.array([w, h]) * res  # some off the field
+    xy[:20] = origin + (rng.integers(0, max(w, h), (20, 2)) + 0.5) * res  # on cell centres
+    xy[20] = np.nan
+    xy[21, 0] = np.inf
+    got = wall_vectors(vx, vy, xy, float(origin[0]), float(origin[1]), res, w, h)
+    assert got.tobytes() == _numpy_wall_vectors(vx, vy, xy, origin, res, w, h).tobytes()
