@@ -1,6 +1,7 @@
 """The matcher's compiled lookups (glassmap/pose/matcher_jit.py) give the scores of the numpy code they
 replaced to the last bit: coarse cell lookups, the bilinear wall-vector interpolation, one origin or one
-per yaw, points off the crop (clamped into its border)."""
+per yaw, points off the crop (clamped into its border); the wall-vector kernel's square lattices of
+translations."""
 
 import numpy as np
 import pytest
@@ -72,8 +73,13 @@ def test_scores_equal_the_numpy_lookups_to_the_bit(room):
         wt = w * rng.uniform(0.2, 1.0, w.shape)
         yaws = rng.uniform(-0.2, 0.2) + np.arange(k) * 0.003
         tx, ty = rng.integers(-12, 13, 25), rng.integers(-12, 13, 25)
+        side = int(rng.integers(1, 10))  # the wall-vector path scores a square lattice of translations
+        lx, ly = np.meshgrid(np.arange(side) + rng.integers(-12, 13 - side),
+                             np.arange(side) + rng.integers(-12, 13 - side))
         xy0 = rng.normal(0.0, 0.3, (k, 2)) if trial % 2 else rng.normal(0.0, 0.3, 2)
         for arr, bilinear in ((fld.coarse, False), (fld.fine, False), (fld.fine, True)):
+            if bilinear:
+                tx, ty = lx.ravel(), ly.ravel()
             got = m._scores(arr, fld, p, wt, xy0, yaws, tx, ty, margin, bilinear)
             want = numpy_scores(arr, fld, p, wt, xy0, yaws, tx, ty, margin, bilinear)
             assert got.dtype == want.dtype == np.float32
@@ -92,3 +98,16 @@ def test_a_match_is_unchanged_by_the_kernels(room, monkeypatch):
     for name in ("pose", "covariance", "peak_pose", "information"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     assert (got.quality, got.n_poses, got.edge) == (want.quality, want.n_poses, want.edge)
+
+
+def test_the_wall_vector_kernel_takes_only_a_square_lattice_inside_the_field(room):
+    fld, pts, w = room
+    m = CorrelativeMatcher()
+    margin = fld.params.pad // 2
+    lx, ly = (g.ravel() for g in np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)))
+    m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(2), lx, ly, margin, True)
+    for tx, ty in ((lx[::-1], ly[::-1]), (lx[:-1], ly[:-1]), (np.array([0, 3]), np.array([0, 0]))):
+        with pytest.raises(ValueError, match="square lattice"):
+            m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(2), tx, ty, margin, True)
+    with pytest.raises(ValueError, match="past the field"):
+        m._scores(fld.fine, fld, pts, w, np.zeros(2), np.zeros(2), lx, ly + fld.shape[0], margin, True)
