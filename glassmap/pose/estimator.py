@@ -31,7 +31,7 @@ import numpy as np
 
 from glassmap.grid import OccupancyGrid, OccupancyParams, MapGrid
 from glassmap.pose.chain import ChainConfig, DriftChain
-from glassmap.pose.estimator_jit import add_hits, registration_sigmas, seen_through_glass
+from glassmap.pose.estimator_jit import add_hits, mean_keys, registration_sigmas, seen_through_glass
 from glassmap.pose.field import FieldParams, LikelihoodField
 from glassmap.pose.filter import PoseEKF, offset_consensus
 from glassmap.pose.filter_jit import carried, rotated
@@ -81,6 +81,7 @@ def _psd(m: np.ndarray) -> np.ndarray:
 
 HIT_LAYERS = ("pose_hit_sx", "pose_hit_sy", "pose_hit_n")
 KEY_LAYER = "pose_hit_key"  # per cell: the sum over its end points (``pose_hit_n``) of their key scans' chain indices
+_NO_LAYER = np.zeros((0, 0), np.float32)  # (add_hits without KEY_LAYER)
 MAP_UNCERTAINTY = ("chain", "off")  # EstimatorConfig.map_uncertainty
 
 
@@ -679,27 +680,18 @@ class PoseEstimator:
             return
         g = self.occupancy.grid
         sx, sy, n = (g[name] for name in HIT_LAYERS)
-        add_hits(sx, sy, n, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
-        if KEY_LAYER in g.layer_names:
-            ix, iy = self._cells(end)
-            np.add.at(g[KEY_LAYER], (iy, ix), np.float32(len(self.chain)))
-
-    def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Column and row indices of the grid cells of the map-frame points ``xy`` (n, 2) inside the grid."""
-        g = self.occupancy.grid
-        c = g.world_to_cell(xy)
-        c = c[g.in_bounds(c)]
-        return c[:, 0], c[:, 1]
+        key = g[KEY_LAYER] if KEY_LAYER in g.layer_names else _NO_LAYER
+        add_hits(sx, sy, n, key, np.float32(len(self.chain)), end, float(g.origin[0]), float(g.origin[1]),
+                 float(g.resolution))
 
     def _anchors(self, pts: np.ndarray) -> np.ndarray | None:
-        """``KeyScan.anchors`` of the matched points ``pts`` (n, 2, base frame) at the scan's pose."""
-        if KEY_LAYER not in self.occupancy.grid.layer_names:
-            return None
-        ix, iy = self._cells(points_to_map(self.scan_pose(), pts))
+        """``KeyScan.anchors`` of the matched points ``pts`` (n, 2, base frame) at the scan's pose: the mean chain
+        index of the end points in each one's cell (cells inside the grid that hold end points)."""
         g = self.occupancy.grid
-        n = g[HIT_LAYERS[2]][iy, ix]
-        on = n > 0
-        return np.floor(g[KEY_LAYER][iy[on], ix[on]] / n[on] + 0.5).astype(np.int32)
+        if KEY_LAYER not in g.layer_names:
+            return None
+        return mean_keys(g[KEY_LAYER], g[HIT_LAYERS[2]], points_to_map(self.scan_pose(), pts), float(g.origin[0]),
+                         float(g.origin[1]), float(g.resolution))
 
     # ------------------------------------------------------------------ outputs
     def scan_pose(self) -> np.ndarray:

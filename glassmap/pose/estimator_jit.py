@@ -33,11 +33,13 @@ def registration_sigmas(ranges: np.ndarray, sxy2: float, sth2: float, range_sigm
 
 
 @_jit
-def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray, ox: float, oy: float,
-             res: float) -> None:
-    """Add each end point's offset from its cell's corner (m, float32) to ``sx``, ``sy`` and 1 to ``count``
-    ((h, w) float32 layers), in the order of the points."""
+def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, key: np.ndarray, key_value: np.float32,
+             end: np.ndarray, ox: float, oy: float, res: float) -> None:
+    """Add each end point's offset from its cell's corner (m, float32) to ``sx``, ``sy``, 1 to ``count`` and
+    ``key_value`` to ``key`` ((h, w) float32 layers; ``key`` may be empty (0, 0): none), in the order of the
+    points."""
     h, w = count.shape
+    with_key = key.size > 0
     for i in range(end.shape[0]):
         ix = np.int64(np.floor((end[i, 0] - ox) / res))
         iy = np.int64(np.floor((end[i, 1] - oy) / res))
@@ -46,6 +48,28 @@ def add_hits(sx: np.ndarray, sy: np.ndarray, count: np.ndarray, end: np.ndarray,
         sx[iy, ix] += np.float32(end[i, 0] - (ox + ix * res))
         sy[iy, ix] += np.float32(end[i, 1] - (oy + iy * res))
         count[iy, ix] += np.float32(1.0)
+        if with_key:
+            key[iy, ix] += key_value
+
+
+@_jit
+def mean_keys(key: np.ndarray, count: np.ndarray, xy: np.ndarray, ox: float, oy: float, res: float) -> np.ndarray:
+    """For each map-frame point of ``xy`` (n, 2) whose cell lies in the (h, w) float32 layers and holds end
+    points (``count`` > 0), in order: ``key / count`` rounded (float32 floor(key / count + 0.5)), int32."""
+    h, w = count.shape
+    out = np.empty(xy.shape[0], np.int32)
+    m = 0
+    half = np.float32(0.5)
+    for i in range(xy.shape[0]):
+        ix = np.int64(np.floor((xy[i, 0] - ox) / res))
+        iy = np.int64(np.floor((xy[i, 1] - oy) / res))
+        if ix < 0 or ix >= w or iy < 0 or iy >= h:
+            continue
+        n = count[iy, ix]
+        if n > 0:
+            out[m] = np.int32(np.floor(key[iy, ix] / n + half))
+            m += 1
+    return out[:m]
 
 
 def warm_up() -> None:
@@ -54,7 +78,8 @@ def warm_up() -> None:
     lay = [np.zeros((2, 2), np.float32) for _ in range(3)]
     end = np.zeros((1, 2))
     registration_sigmas(np.zeros(1), 0.0, 0.0, 0.0, 0.0)
-    add_hits(lay[0], lay[1], lay[2], end, 0.0, 0.0, 1.0)
+    add_hits(lay[0], lay[1], lay[2], lay[0], np.float32(0.0), end, 0.0, 0.0, 1.0)
+    mean_keys(lay[0], lay[1], end, 0.0, 0.0, 1.0)
     one = np.zeros(1)
     seen_through_glass(lay[0], 0.0, 0.0, 1.0, 0.0, 0.0, one, one, one, one)
 

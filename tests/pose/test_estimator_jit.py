@@ -3,7 +3,7 @@
 import numpy as np
 
 from glassmap.grid import MapGrid
-from glassmap.pose.estimator_jit import add_hits, registration_sigmas
+from glassmap.pose.estimator_jit import add_hits, mean_keys, registration_sigmas
 
 
 def _end_points(rng, n):
@@ -36,10 +36,11 @@ def test_registration_sigmas_equal_the_numpy_sigmas():
 
 def test_add_hits_equals_add_at():
     rng = np.random.default_rng(2)
-    for _ in range(20):
+    for trial in range(20):
         g, _ = _grid(rng)
         end = _end_points(rng, int(rng.integers(1, 400)))
-        init = [rng.uniform(-1, 1, g.shape).astype(np.float32) for _ in range(3)]
+        init = [rng.uniform(-1, 1, g.shape).astype(np.float32) for _ in range(4)]
+        key_value = np.float32(rng.integers(0, 5000))
         cells = g.world_to_cell(end)
         ok = g.in_bounds(cells)
         cells, xy = cells[ok], end[ok]
@@ -48,7 +49,28 @@ def test_add_hits_equals_add_at():
         want = [a.copy() for a in init]
         for lay, vals in zip(want, (off[:, 0], off[:, 1], np.ones(len(flat)))):
             np.add.at(lay.reshape(-1), flat, vals.astype(np.float32))
+        np.add.at(want[3], (cells[:, 1], cells[:, 0]), key_value)  # the estimator's key layer, as it was added
         got = [a.copy() for a in init]
-        add_hits(*got, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
+        key = got[3] if trial % 4 else np.zeros((0, 0), np.float32)  # without a key layer
+        add_hits(*got[:3], key, key_value, end, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
+        if not trial % 4:
+            want[3] = init[3]
         for a, b in zip(got, want):
             assert a.tobytes() == b.tobytes()
+
+
+def test_mean_keys_equal_the_numpy_anchors():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        g, _ = _grid(rng)
+        xy = _end_points(rng, int(rng.integers(1, 400)))
+        count = rng.integers(0, 4, g.shape).astype(np.float32)
+        key = (count * rng.uniform(0, 3000, g.shape)).astype(np.float32)
+        c = g.world_to_cell(xy)  # the estimator's numpy code
+        c = c[g.in_bounds(c)]
+        ix, iy = c[:, 0], c[:, 1]
+        n = count[iy, ix]
+        on = n > 0
+        want = np.floor(key[iy[on], ix[on]] / n[on] + 0.5).astype(np.int32)
+        got = mean_keys(key, count, xy, float(g.origin[0]), float(g.origin[1]), float(g.resolution))
+        assert got.dtype == np.int32 and got.tobytes() == want.tobytes()
