@@ -112,9 +112,10 @@ class EstimatorConfig:
     field_refresh_scans: without ``field_incremental``, the likelihood field is rebuilt from the grid after
         this many key scans were integrated, on the next scan (a non-key scan, so the cost does not add to
         a key scan's), and on a key scan when the robot nears the edge of the field's crop or the grid grew.
-    background_field: compute that periodic rebuild in a worker thread (the grid crop is copied on the
-        non-key scan, the result is installed at the next key scan, waiting for it if needed), so its
-        10-20 ms stay off the scan-processing path; the results are the same as without it.
+    background_field: compute that periodic rebuild in a worker thread (the crop's occupied cells are taken
+        on the non-key scan, its end-point layers read in place, which only key scans write; the result is
+        installed at the next key scan, waiting for it if needed), so its 10-20 ms stay off the
+        scan-processing path; the results are the same as without it.
     gate_chi2: matches whose innovation has a squared Mahalanobis distance above this are rejected
         (chi-square 99.99 % points by the number of directions fused: 15.1, 18.4, 21.1 for 1, 2, 3; this is
         the 3-dof one, the others scale with it). A rejected match is neither fused nor integrated into the
@@ -584,7 +585,9 @@ class PoseEstimator:
         t = time.perf_counter()
         g = self.occupancy.grid
         pts_layers = tuple(g[n] for n in HIT_LAYERS) if self.config.subcell_walls else None
-        inputs = self.field.snapshot(self.occupancy, self.scan_pose()[:2], pts_layers)
+        # the end-point layers are read in place, by the worker too: only a key scan writes them (_store_hits),
+        # after _install_pending_field has waited for the result
+        inputs = self.field.snapshot(self.occupancy, self.scan_pose()[:2], pts_layers, copy=False)
         if background:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="likelihood-field")

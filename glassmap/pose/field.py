@@ -135,8 +135,8 @@ class LikelihoodField:
     def snapshot(self, occupancy: OccupancyGrid, center_xy: np.ndarray,
                  points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, copy: bool = True) -> FieldInputs:
         """Copy what :meth:`compute` needs from the grid (the crop around ``center_xy``): cheap, and the grid
-        may change afterwards. ``copy`` False: the end-point layers are views of the grid's (for a field
-        computed at once, not in another thread)."""
+        may change afterwards. ``copy`` False: the end-point layers are views of the grid's, which must not
+        change until :meth:`compute` has run (the occupied cells are always copied)."""
         p = self.params
         g = occupancy.grid
         res = g.resolution
