@@ -45,11 +45,7 @@ def cell_values(field: np.ndarray, px: np.ndarray, py: np.ndarray, c: np.ndarray
 def _lattice_side(off: np.ndarray, w: int) -> int:
     """m when the flat offsets ``off`` (T,) are the square lattice of m x m cells ``off[0] + r * w + q``
     (r, q in 0 .. m - 1, q fastest), else 0."""
-    m = int(np.sqrt(off.shape[0]))
-    while m * m > off.shape[0]:
-        m -= 1
-    while (m + 1) * (m + 1) <= off.shape[0]:
-        m += 1
+    m = int(np.sqrt(off.shape[0]) + 0.5)
     if m * m != off.shape[0]:
         return 0
     for r in range(m):
