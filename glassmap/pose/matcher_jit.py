@@ -85,7 +85,7 @@ def scaled_squared_distances(vx: np.ndarray, vy: np.ndarray, px: np.ndarray, py:
     m = _lattice_side(off, w)
     if m == 0:
         raise ValueError("the translations are not a square lattice of cells")
-    lo = margin * w + margin + off[0]  # the smallest and largest flat cell read
+    lo = min(margin, h - 2 - margin) * w + min(margin, w - 2 - margin) + off[0]  # the smallest and largest cell read
     hi = (h - 2 - margin) * w + (w - 2 - margin) + off[0] + (m - 1) * w + (m - 1) + w + 1
     if lo < 0 or hi >= vx.shape[0] or hi >= vy.shape[0]:
         raise ValueError("the translations reach past the field")
