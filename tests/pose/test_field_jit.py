@@ -81,8 +81,9 @@ def _numpy_wall_vectors(vx, vy, xy, origin, res, w, h):
     out = np.full(xy.shape, np.nan)
     g = (xy - origin) / res - 0.5
     x0, y0 = np.floor(g[:, 0]), np.floor(g[:, 1])
-    ax, ay = g[:, 0] - x0, g[:, 1] - y0
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+    with np.errstate(invalid="ignore"):  # inf - inf on the point off at infinity
+        ax, ay = g[:, 0] - x0, g[:, 1] - y0
+        inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
     base = np.where(inside, y0 * w + x0, 0).astype(np.int64)
     corners = ((0, (1 - ax) * (1 - ay)), (1, ax * (1 - ay)), (w, (1 - ax) * ay), (w + 1, ax * ay))
     ivx = sum(c * vx[base + d] for d, c in corners)
