@@ -344,14 +344,14 @@ def as_recorded_scan(scan: Scan, tb: TimeBase) -> Scan:
                          range_max=float(f(g.range_max)),
                          scan_time=float(f(g.scan_time)) if f(g.scan_time) > 0 else 0.025)
     inten = None if scan.intensities is None else scan.intensities.astype(np.float32).astype(np.float64)
-    echoes = echo_i = None
-    last = last_echo(scan)
-    if last is not None:  # recorded as the last echo only (LASTECHO_SUFFIX), so keep only that
-        echoes = last[0].astype(np.float32).astype(np.float64)[:, None]
-        echo_i = last[1].astype(np.float32).astype(np.float64)[:, None]
-    return Scan(stamp=tb.host(tb.ns(scan.stamp)), ranges=scan.ranges.astype(np.float32).astype(np.float64),
-                intensities=inten, geometry=geom, sensor_stamp=scan.sensor_stamp, seq=scan.seq,
-                echoes=echoes, echo_intensities=echo_i)
+    if scan.echoes is None:
+        ranges, echoes, echo_i = scan.ranges.astype(np.float32).astype(np.float64), None, None
+    else:  # recorded as the last echo only (LASTECHO_SUFFIX), so keep only that
+        from runtime.messages_jit import recorded_last_echoes
+
+        ranges, echoes, echo_i = recorded_last_echoes(*_echo_arrays(scan))
+    return Scan(stamp=tb.host(tb.ns(scan.stamp)), ranges=ranges, intensities=inten, geometry=geom,
+                sensor_stamp=scan.sensor_stamp, seq=scan.seq, echoes=echoes, echo_intensities=echo_i)
 
 
 LASTECHO_SUFFIX = "/last_echo"
@@ -368,11 +368,17 @@ def last_echo(scan: Scan) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     from runtime.messages_jit import last_echoes
 
+    return last_echoes(*_echo_arrays(scan))
+
+
+def _echo_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' inputs of a scan with echoes: ranges (n,), echoes (n, k), their intensities (n, k) (0
+    without), float64 and contiguous."""
     r = np.ascontiguousarray(scan.ranges, dtype=np.float64)
     e = np.ascontiguousarray(scan.echoes, dtype=np.float64).reshape(r.shape[0], -1)
     ei = (np.zeros_like(e) if scan.echo_intensities is None
           else np.ascontiguousarray(scan.echo_intensities, dtype=np.float64).reshape(r.shape[0], -1))
-    return last_echoes(r, e, ei)
+    return r, e, ei
 
 
 def as_recorded_odometry(odom: Odometry, tb: TimeBase, frame_id: str = "odom",

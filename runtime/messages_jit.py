@@ -1,6 +1,6 @@
-"""Compiled per-beam loop of :func:`runtime.messages.last_echo`, numba ``njit`` (loaded at first use, see
-:mod:`glassmap.jit`). The same values as the numpy code it replaced, bit for bit. Compiled code is cached
-on disk (``cache=True``)."""
+"""Compiled per-beam loops of :func:`runtime.messages.last_echo` and :func:`runtime.messages.as_recorded_scan`,
+numba ``njit`` (loaded at first use, see :mod:`glassmap.jit`). The same values as the numpy code they
+replaced, bit for bit. Compiled code is cached on disk (``cache=True``)."""
 
 from __future__ import annotations
 
@@ -33,7 +33,25 @@ def last_echoes(r: np.ndarray, e: np.ndarray, ei: np.ndarray) -> tuple[np.ndarra
     return lr, li
 
 
+@njit(cache=True, nogil=True)
+def recorded_last_echoes(r: np.ndarray, e: np.ndarray,
+                         ei: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ranges ``r`` (n,) (m) and :func:`last_echoes` as a LaserScan records them: each value rounded
+    to float32 and back; (ranges (n,), last echoes (n, 1), their intensities (n, 1))."""
+    lr, li = last_echoes(r, e, ei)
+    n = r.shape[0]
+    rr = np.empty(n, np.float64)
+    er = np.empty((n, 1), np.float64)
+    ir = np.empty((n, 1), np.float64)
+    for i in range(n):
+        rr[i] = np.float64(np.float32(r[i]))
+        er[i, 0] = np.float64(np.float32(lr[i]))
+        ir[i, 0] = np.float64(np.float32(li[i]))
+    return rr, er, ir
+
+
 def warm_up() -> None:
-    """Load (or, the first time on a machine, compile) the kernel now, with the argument types
-    :func:`runtime.messages.last_echo` passes, rather than at the first multi-echo scan."""
+    """Load (or, the first time on a machine, compile) the kernels now, with the argument types
+    :mod:`runtime.messages` passes, rather than at the first multi-echo scan."""
     last_echoes(np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1)))
+    recorded_last_echoes(np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1)))

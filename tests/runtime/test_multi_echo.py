@@ -123,3 +123,37 @@ def test_last_echo_equals_the_numpy_selection_to_the_bit():
             got, want = M.last_echo(scan), _numpy_last_echo(scan)
             np.testing.assert_array_equal(got[0], want[0])
             np.testing.assert_array_equal(got[1], want[1])
+
+
+def _numpy_as_recorded(scan):
+    """as_recorded_scan's arrays as numpy computed them before the compiled kernel."""
+    last = M.last_echo(scan)
+    with np.errstate(over="ignore"):  # intensities beyond float32's range become inf
+        return tuple(x.astype(np.float32).astype(np.float64) for x in (scan.ranges, last[0][:, None],
+                                                                         last[1][:, None]))
+
+
+def test_as_recorded_scan_equals_the_numpy_rounding_to_the_bit():
+    """Ranges and last echoes through float32, with NaN / +-inf values, intensities beyond float32's range,
+    no echo intensities, float32 input."""
+    rng = np.random.default_rng(3)
+    tb = M.TimeBase(offset_ns=1_700_000_000_000_000_000)
+    for k in (1, 2, 3):
+        scan = make_scan(1.0)
+        n = scan.ranges.shape[0]
+        scan.ranges = scan.ranges + rng.uniform(-1e-3, 1e-3, n)
+        scan.ranges[rng.random(n) < 0.05] = np.nan
+        scan.ranges[rng.random(n) < 0.05] = np.inf
+        e = scan.ranges[:, None] + rng.uniform(0.0, 3.0, (n, k))
+        e[rng.random((n, k)) < 0.3] = np.nan
+        e[rng.random((n, k)) < 0.05] = -np.inf
+        ei = rng.uniform(0, 5000, (n, k))
+        ei[rng.random((n, k)) < 0.1] = np.nan
+        ei[rng.random((n, k)) < 0.05] = np.inf
+        ei[rng.random((n, k)) < 0.05] = 1e300
+        for scan.echoes, scan.echo_intensities in ((e, ei), (e[:, ::-1], None), (e.astype(np.float32), ei)):
+            got = M.as_recorded_scan(scan, tb)
+            want = _numpy_as_recorded(scan)
+            for a, b in zip((got.ranges, got.echoes, got.echo_intensities), want):
+                assert a.dtype == b.dtype and a.shape == b.shape
+                np.testing.assert_array_equal(a.view(np.int64), b.view(np.int64))
