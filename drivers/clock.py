@@ -155,43 +155,17 @@ def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
     """(c, b) of the line a = c + b s below every point (s_i, a_i) with the least total distance to them
     (the linear program of Moon, Skelly and Towsley 1999 for clock skew from one-way delays: jitter only
     makes arrivals late, so late points never pull the line; its optimum passes through two points).
-    None when no line with a positive slope lies below them all."""
+    None when no line with a positive slope lies below them all. Only pairs of points near the lower convex
+    hull are tried (both points of a feasible pair lie on it), in the order of all pairs (the same first
+    minimum): :func:`drivers.clock_jit.lower_envelope`."""
+    from drivers.clock_jit import lower_envelope
+
     s0, a0 = s[0], a[0]
-    s, a = s - s0, a - a0  # host times may be epoch seconds: keep the rounding far below a microsecond
-    # both points of a feasible pair lie on the lower convex hull (within the 1e-9 tolerance below): only
-    # pairs of points near the hull are tried, in the order of all pairs (the same first minimum)
-    near = _near_lower_hull(s, a, 1e-6)
-    i, j = np.triu_indices(near.size, 1)
-    i, j = near[i], near[j]
-    ds = s[j] - s[i]
-    ok = ds > 0
-    i, j, ds = i[ok], j[ok], ds[ok]
-    b = (a[j] - a[i]) / ds
-    c = a[i] - b * s[i]
-    resid = a[None, :] - (c[:, None] + b[:, None] * s[None, :])  # (pairs, points)
-    feasible = (resid.min(axis=1) >= -1e-9) & (b > 0)  # host time runs forward with sensor time
-    cost = np.where(feasible, resid.sum(axis=1), np.inf)
-    k = int(np.argmin(cost))
-    if not np.isfinite(cost[k]):
+    # relative times: host times may be epoch seconds, keep the rounding far below a microsecond
+    status, c, b = lower_envelope(np.ascontiguousarray(s - s0, dtype=np.float64),
+                                  np.ascontiguousarray(a - a0, dtype=np.float64))
+    if status < 0:
+        raise ValueError("lower envelope: no two blocks at different sensor times")
+    if status == 0:
         return None
-    return float(a0 + c[k] - b[k] * s0), float(b[k])
-
-
-def _near_lower_hull(s: np.ndarray, a: np.ndarray, tol: float) -> np.ndarray:
-    """Indices (ascending) of the points (s_i, a_i) at most ``tol`` above the lower convex hull of all of
-    them (monotone chain: O(n log n)); a point with the least a of several equal s stands for them on the
-    hull, the others are measured against it."""
-    order = np.lexsort((a, s))
-    so, ao = s[order], a[order]
-    first = np.ones(so.size, dtype=bool)
-    first[1:] = so[1:] != so[:-1]
-    xs, ys = so[first].tolist(), ao[first].tolist()
-    hx: list[float] = []
-    hy: list[float] = []
-    for x, y in zip(xs, ys):
-        while len(hx) >= 2 and (hx[-1] - hx[-2]) * (y - hy[-2]) - (hy[-1] - hy[-2]) * (x - hx[-2]) <= 0:
-            hx.pop()
-            hy.pop()
-        hx.append(x)
-        hy.append(y)
-    return np.flatnonzero(a - np.interp(s, hx, hy) <= tol)
+    return float(a0 + c - b * s0), float(b)

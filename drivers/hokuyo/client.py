@@ -24,6 +24,7 @@ from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass
 
 from drivers.capture import CaptureRecorder
+from drivers.clock_jit import warm_up as warm_up_clock
 from drivers.connecting import Connecting
 from drivers.errors import DeviceTimeout, DriverError, TransportClosed
 from drivers.hokuyo.errors import BadValue, ScipStatusError, SensorSilent, StopNotConfirmed
@@ -95,11 +96,12 @@ _decoders_warm = False
 
 
 async def _warm_decoders() -> None:
-    """Load the compiled SCIP decoders once per process (compile them, the first time on a machine), in a
-    thread: the event loop keeps serving meanwhile, and the first scan does not wait for them."""
+    """Load the compiled SCIP decoders and clock fit once per process (compile them, the first time on a
+    machine), in a thread: the event loop keeps serving meanwhile, and the first scan does not wait for them."""
     global _decoders_warm
     if not _decoders_warm:
         await asyncio.to_thread(warm_up_decoders)
+        await asyncio.to_thread(warm_up_clock)
         _decoders_warm = True
 
 

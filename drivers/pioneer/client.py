@@ -41,6 +41,7 @@ from urllib.parse import parse_qs, urlparse
 
 from glassmap.types import Odometry
 
+from drivers.clock_jit import warm_up as warm_up_clock
 from drivers.connecting import Connecting
 from drivers.errors import DriverError, TransportError
 from drivers.pioneer.errors import (ClientClosedError, DecodeError, HandshakeError, HandshakeTimeout,
@@ -134,6 +135,16 @@ def _serial_url_with_baud(url: str, baud: int | None = None) -> str:
 
 
 _live_clients: weakref.WeakSet[PioneerClient] = weakref.WeakSet()
+_clock_warm = False
+
+
+async def _warm_clock() -> None:
+    """Load the SIP clock's compiled fit once per process (compile it, the first time on a machine), in a
+    thread, rather than at its first fit in the event loop."""
+    global _clock_warm
+    if not _clock_warm:
+        await asyncio.to_thread(warm_up_clock)
+        _clock_warm = True
 
 
 @atexit.register
@@ -196,6 +207,7 @@ class PioneerClient:
         return Connecting(factory)
 
     async def _start(self, enable_motors: bool) -> None:
+        await _warm_clock()  # before the link opens: nothing waits on the event loop yet
         await self._open_link()
         self._reader_task = asyncio.create_task(self._supervise(), name="pioneer-link")
         self._tasks = [self._reader_task, asyncio.create_task(self._control_loop(), name="pioneer-control")]

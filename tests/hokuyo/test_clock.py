@@ -140,3 +140,97 @@ def test_the_envelope_fit_equals_the_all_pairs_fit():
         cases.append((sh, 2.0 + sh + rng.exponential(1e-3, n)))
     for s, a in cases:
         assert _lower_envelope(s, a) == _lower_envelope_all_pairs(s, a)
+
+
+def _near_lower_hull_numpy(s, a, tol):
+    """The hull selection before the compiled fit (lexsort, monotone chain, np.interp): the reference."""
+    order = np.lexsort((a, s))
+    so, ao = s[order], a[order]
+    first = np.ones(so.size, dtype=bool)
+    first[1:] = so[1:] != so[:-1]
+    hx, hy = [], []
+    for x, y in zip(so[first].tolist(), ao[first].tolist()):
+        while len(hx) >= 2 and (hx[-1] - hx[-2]) * (y - hy[-2]) - (hy[-1] - hy[-2]) * (x - hx[-2]) <= 0:
+            hx.pop()
+            hy.pop()
+        hx.append(x)
+        hy.append(y)
+    return np.flatnonzero(a - np.interp(s, hx, hy) <= tol)
+
+
+def test_the_compiled_hull_and_sum_equal_numpy_to_the_bit():
+    """Sorted, shuffled and duplicated sensor times, epoch offsets, points on and near the hull; sums of 1 to
+    300 values (numpy's pairwise order)."""
+    from drivers.clock_jit import _sum, near_lower_hull
+
+    rng = np.random.default_rng(8)
+    for _ in range(3000):
+        n = int(rng.integers(1, 50))
+        s = np.sort(rng.uniform(0, 8, n))
+        if rng.random() < 0.3:
+            s = np.round(s, 1)  # equal sensor times
+        if rng.random() < 0.3:
+            s = rng.permutation(s)
+        a = 0.3 + (1 + rng.normal(0, 1e-4)) * s + rng.exponential(1e-3, n) * (rng.random(n) < 0.7)
+        tol = float(rng.choice([1e-6, 0.0, 1e-3]))
+        np.testing.assert_array_equal(near_lower_hull(s, a, tol), _near_lower_hull_numpy(s, a, tol))
+    for n in range(1, 300):
+        x = rng.normal(0, 1, n) * 10.0 ** rng.uniform(-9, 3, n)
+        assert _sum(x) == x.sum()
+
+
+def _lower_envelope_numpy(s, a):
+    """The envelope fit before it was compiled (pairs of points near the hull, in numpy): the reference."""
+    s0, a0 = s[0], a[0]
+    s, a = s - s0, a - a0
+    near = _near_lower_hull_numpy(s, a, 1e-6)
+    i, j = np.triu_indices(near.size, 1)
+    i, j = near[i], near[j]
+    ds = s[j] - s[i]
+    ok = ds > 0
+    i, j, ds = i[ok], j[ok], ds[ok]
+    b = (a[j] - a[i]) / ds
+    c = a[i] - b * s[i]
+    resid = a[None, :] - (c[:, None] + b[:, None] * s[None, :])
+    feasible = (resid.min(axis=1) >= -1e-9) & (b > 0)
+    cost = np.where(feasible, resid.sum(axis=1), np.inf)
+    k = int(np.argmin(cost))  # ValueError without pairs
+    if not np.isfinite(cost[k]):
+        return None
+    return float(a0 + c[k] - b[k] * s0), float(b[k])
+
+
+def test_the_compiled_fit_equals_the_numpy_fit_to_the_bit():
+    """Shuffled, duplicated and rounded sensor times (also no two near the hull in increasing order: a
+    ValueError), epoch offsets, rising, falling and steep lines."""
+    from drivers.clock import _lower_envelope
+
+    rng = np.random.default_rng(9)
+    outcomes = set()
+    for _ in range(3000):
+        n = int(rng.integers(4, 60))
+        s = np.sort(rng.uniform(0, 8, n))
+        if rng.random() < 0.5:
+            s = np.round(s, int(rng.integers(1, 4)))
+        if rng.random() < 0.3:
+            s = rng.permutation(s)
+        s = s + 1.7e9 * rng.integers(0, 2)
+        slope = 1 + rng.normal(0, 1e-4) if rng.random() < 0.7 else rng.normal(0, 2)
+        a = 1.7e9 * rng.integers(0, 2) + slope * (s - s[0]) + rng.exponential(1e-3, n) * (rng.random(n) < 0.7)
+        got, want = [], []
+        for f, out in ((_lower_envelope, got), (_lower_envelope_numpy, want)):
+            try:
+                out.append(f(s, a))
+            except ValueError:
+                out.append(ValueError)
+        assert got == want
+        outcomes.add(type(want[0]))
+    assert outcomes == {tuple, type(None), type}  # lines, no line, ValueError
+
+
+def test_no_two_sensor_times_is_a_value_error_as_before():
+    """A frozen sensor stamp leaves no pair of points to fit (numpy's argmin of no pairs raised ValueError)."""
+    from drivers.clock import _lower_envelope
+
+    with pytest.raises(ValueError):
+        _lower_envelope(np.full(5, 3.0), 1.0 + np.arange(5.0))
