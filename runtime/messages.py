@@ -160,18 +160,19 @@ def path_msg(stamps_ns: np.ndarray, poses: np.ndarray, ns: int, frame_id: str = 
                                      poses=[pose_stamped_msg(*p, int(t), frame_id) for t, p in zip(stamps_ns, poses)])
 
 
+_XY_YAW = np.ix_([0, 1, 5], [0, 1, 5])  # the (x, y, yaw) rows and columns of a 6x6 ROS covariance
+
+
 def cov6(cov3: np.ndarray) -> np.ndarray:
     """3x3 covariance over (x, y, yaw) -> the row-major 6x6 ROS covariance over (x, y, z, roll, pitch, yaw)."""
     c = np.zeros((6, 6))
-    idx = [0, 1, 5]
-    c[np.ix_(idx, idx)] = np.asarray(cov3, dtype=float)[:3, :3]
+    c[_XY_YAW] = np.asarray(cov3, dtype=float)[:3, :3]
     return c.reshape(36)
 
 
 def cov3(cov36) -> np.ndarray:
     c = np.asarray(cov36, dtype=float).reshape(6, 6)
-    idx = [0, 1, 5]
-    return c[np.ix_(idx, idx)].copy()
+    return c[_XY_YAW].copy()
 
 
 def laser_scan_msg(scan: Scan, ns: int, frame_id: str = "laser", values: np.ndarray | None = None):
