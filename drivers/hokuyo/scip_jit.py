@@ -154,9 +154,8 @@ def scan_frames(buf: np.ndarray, verify: bool, line_payload: int) -> tuple[np.nd
                     ok = False
                     break
             if not first:
-                for j in range(start, end - 1):
-                    data[n_out] = buf[j]
-                    n_out += 1
+                data[n_out:n_out + n - 1] = buf[start:end - 1]
+                n_out += n - 1
             start = end + 1
         if not ok:
             break

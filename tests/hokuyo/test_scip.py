@@ -19,6 +19,7 @@ from drivers.hokuyo.errors import (
     status_error,
 )
 from drivers.hokuyo.scip import (
+    LINE_PAYLOAD,
     InfoReply,
     Reply,
     ScanReply,
@@ -425,3 +426,69 @@ def test_partial_echo_without_line_end_resynchronises_at_the_next_echo(next_echo
 def test_echo_with_an_ordinary_string_keeps_it():
     out = ScipParser().feed(encode_reply(b"MS0540054001000;scan-7", "00"))
     assert out[0].echo.string == "scan-7"
+
+
+def _scan_frames_bytewise(buf, verify, line_payload):
+    """drivers.hokuyo.scip_jit.scan_frames as it was before it copied each data line as a slice (the data
+    characters one at a time), run as plain Python: the reference."""
+    lf = np.flatnonzero(buf == 0x0A)
+    frames = np.empty((lf.size // 4, 4), np.int64)
+    data = np.empty(buf.size, np.uint8)
+    offsets = np.zeros(lf.size // 4 + 1, np.int64)
+    m = done = li = 0
+    for bi in range(lf.size - 1):
+        if lf[bi + 1] - lf[bi] != 1:
+            continue
+        if bi + 1 - li < 4 or lf[li] <= done:
+            break
+        i2 = lf[li + 1]
+        ok = True
+        start = i2 + 1
+        n_out = offsets[m]
+        for k in range(li + 2, bi + 1):
+            end = lf[k]
+            n = end - start
+            first, last = k == li + 2, k == bi
+            if (n != 5) if first else ((n < 2) if last else (n != line_payload + 1)):
+                ok = False
+                break
+            if verify and (int(buf[start:end - 1].astype(np.int64).sum()) & 0x3F) + 0x30 != buf[end - 1]:
+                ok = False
+                break
+            if not first:
+                for j in range(start, end - 1):
+                    data[n_out] = buf[j]
+                    n_out += 1
+            start = end + 1
+        if not ok:
+            break
+        frames[m] = done, lf[li], i2, lf[bi + 1]
+        m += 1
+        offsets[m] = n_out
+        done = lf[bi + 1] + 1
+        li = bi + 2
+    return frames[:m], data[:offsets[m]], offsets[:m + 1]
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(scan_messages(), min_size=1, max_size=3), st.data(), st.booleans())
+def test_scan_frames_equals_the_bytewise_copy(cases, data, verify):
+    """Whole messages, then a flipped, inserted or deleted byte or a cut anywhere (short lines, bad
+    checksums, lost line ends), with and without checksum verification."""
+    from drivers.hokuyo.scip_jit import scan_frames
+
+    buf = bytearray(b"".join(c[0] for c in cases))
+    kind = data.draw(st.sampled_from(["none", "flip", "insert", "delete", "cut"]))
+    at = data.draw(st.integers(0, len(buf) - 1))
+    if kind == "flip":
+        buf[at] ^= 1 << data.draw(st.integers(0, 7))
+    elif kind == "insert":
+        buf[at:at] = bytes([data.draw(st.sampled_from([0x0A, 0x26, 0x30, 0x7F]))])
+    elif kind == "delete":
+        del buf[at]
+    elif kind == "cut":
+        del buf[at:]
+    a = np.frombuffer(bytes(buf), np.uint8)
+    got, want = scan_frames(a, verify, LINE_PAYLOAD), _scan_frames_bytewise(a, verify, LINE_PAYLOAD)
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype and np.array_equal(g, w)
