@@ -155,7 +155,8 @@ def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
     """(c, b) of the line a = c + b s below every point (s_i, a_i) with the least total distance to them
     (the linear program of Moon, Skelly and Towsley 1999 for clock skew from one-way delays: jitter only
     makes arrivals late, so late points never pull the line; its optimum passes through two points).
-    None when no line with a positive slope lies below them all. Only pairs of points near the lower convex
+    None when no line with a positive slope lies below them all, or when no two points have different sensor
+    times (a frozen sensor stamp: the caller keeps the arrival-based stamps). Only pairs of points near the lower convex
     hull are tried (both points of a feasible pair lie on it), in the order of all pairs (the same first
     minimum): :func:`drivers.clock_jit.lower_envelope`."""
     from drivers.clock_jit import lower_envelope
@@ -164,8 +165,6 @@ def _lower_envelope(s: np.ndarray, a: np.ndarray) -> tuple[float, float] | None:
     # relative times: host times may be epoch seconds, keep the rounding far below a microsecond
     status, c, b = lower_envelope(np.ascontiguousarray(s - s0, dtype=np.float64),
                                   np.ascontiguousarray(a - a0, dtype=np.float64))
-    if status < 0:
-        raise ValueError("lower envelope: no two blocks at different sensor times")
-    if status == 0:
+    if status <= 0:
         return None
     return float(a0 + c - b * s0), float(b)
