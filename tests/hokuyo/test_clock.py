@@ -100,11 +100,9 @@ def test_bad_arguments():
         ClockMapper(block=0)
 
 
-def _lower_envelope_all_pairs(s, a):
-    """The envelope fit before it tried only the points near the lower hull: every pair (reference)."""
-    s0, a0 = s[0], a[0]
-    s, a = s - s0, a - a0
-    i, j = np.triu_indices(s.size, 1)
+def _best_line(s, a, i, j, s0, a0):
+    """The numpy fit over the candidate pairs (i, j) of points (s, a) relative to (s0, a0): the references'
+    core (numpy's argmin of no pairs raises ValueError)."""
     ds = s[j] - s[i]
     ok = ds > 0
     i, j, ds = i[ok], j[ok], ds[ok]
@@ -117,6 +115,12 @@ def _lower_envelope_all_pairs(s, a):
     if not np.isfinite(cost[k]):
         return None
     return float(a0 + c[k] - b[k] * s0), float(b[k])
+
+
+def _lower_envelope_all_pairs(s, a):
+    """The envelope fit before it tried only the points near the lower hull: every pair (reference)."""
+    i, j = np.triu_indices(s.size, 1)
+    return _best_line(s - s[0], a - a[0], i, j, s[0], a[0])
 
 
 def test_the_envelope_fit_equals_the_all_pairs_fit():
@@ -185,19 +189,7 @@ def _lower_envelope_numpy(s, a):
     s, a = s - s0, a - a0
     near = _near_lower_hull_numpy(s, a, 1e-6)
     i, j = np.triu_indices(near.size, 1)
-    i, j = near[i], near[j]
-    ds = s[j] - s[i]
-    ok = ds > 0
-    i, j, ds = i[ok], j[ok], ds[ok]
-    b = (a[j] - a[i]) / ds
-    c = a[i] - b * s[i]
-    resid = a[None, :] - (c[:, None] + b[:, None] * s[None, :])
-    feasible = (resid.min(axis=1) >= -1e-9) & (b > 0)
-    cost = np.where(feasible, resid.sum(axis=1), np.inf)
-    k = int(np.argmin(cost))  # ValueError without pairs
-    if not np.isfinite(cost[k]):
-        return None
-    return float(a0 + c[k] - b[k] * s0), float(b[k])
+    return _best_line(s, a, near[i], near[j], s0, a0)
 
 
 def test_the_compiled_fit_equals_the_numpy_fit_to_the_bit():
