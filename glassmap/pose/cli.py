@@ -266,17 +266,15 @@ def _bench(args: argparse.Namespace) -> int:
                               laser_poses=run.laser_poses[:n])
     traj, est = run_estimator(run)
     skip = 10  # the first scans build the map
-    for name, t in (("prediction + matching + covariance + fusion", traj.t_core[skip:]),
-                    ("likelihood field, rebuild or update (per scan, amortised)", traj.t_field[skip:]),
-                    ("occupancy-grid update", traj.t_integrate[skip:])):
-        ms = 1e3 * t
+    keys = traj.key[skip:]
+    rows = [("prediction + matching + covariance + fusion", 1e3 * traj.t_core[skip:])]
+    if keys.any():  # the key scans' share of that: the matched ones
+        rows.append((f"  ... on key scans only ({100 * keys.mean():.0f} % of scans)", 1e3 * traj.t_core[skip:][keys]))
+    rows += [("likelihood field, rebuild or update (per scan, amortised)", 1e3 * traj.t_field[skip:]),
+             ("occupancy-grid update", 1e3 * traj.t_integrate[skip:])]
+    for name, ms in rows:
         print(f"{name:48s} median {np.median(ms):6.2f} ms  p90 {np.percentile(ms, 90):6.2f} ms  "
               f"mean {ms.mean():6.2f} ms")
-    keys = traj.key[skip:]
-    if keys.any():
-        ms = 1e3 * traj.t_core[skip:][keys]
-        print(f"{'  ... on key scans only (' + format(100 * keys.mean(), '.0f') + ' % of scans)':48s} median "
-              f"{np.median(ms):6.2f} ms  p90 {np.percentile(ms, 90):6.2f} ms  mean {ms.mean():6.2f} ms")
     rebuilds = traj.t_field[skip:][traj.t_field[skip:] > 0] * 1e3
     if rebuilds.size:
         how = (f"updated at every key scan, rebuilt {est.stats.field_rebuilds} times" if est.config.field_incremental
